@@ -1,0 +1,8 @@
+"""Exact inference over the options' latent chain: the E-step of DDO and decoding."""
+from torchrl_options.inference.forward_backward import (
+    check_forward_backward_inputs,
+    forward_backward,
+    ForwardBackwardOutput,
+)
+
+__all__ = ["check_forward_backward_inputs", "forward_backward", "ForwardBackwardOutput"]
