@@ -11,7 +11,14 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-__all__ = ["ForwardBackwardOutput", "forward_backward", "check_forward_backward_inputs"]
+__all__ = [
+    "BACKENDS",
+    "ForwardBackwardOutput",
+    "check_forward_backward_inputs",
+    "forward_backward",
+    "resolve_backend",
+    "triton_available",
+]
 
 _NAMES = ("log_pi", "log_term", "log_cont", "log_eta")
 
@@ -125,18 +132,38 @@ def _describe(x) -> str:
     return type(x).__name__
 
 
-def _forward_backward_impl(
-    log_pi: Tensor, log_term: Tensor, log_cont: Tensor, log_eta: Tensor, mask: Tensor, terminal: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Normalised log-space forward-backward, O(K) per step.
+def _raise_zero_likelihood(rows: list[int]) -> None:
+    raise ValueError(
+        f"trajectories {rows[:10]} have zero likelihood: at some step no option can produce the action taken "
+        "(every option's log_pi, or every path through log_term/log_cont/log_eta, is -inf)."
+    )
 
-    Works on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w, term_weight)``,
-    where ``term_weight`` is the [B, T] indicator of the steps whose ``log_term`` enters the likelihood.
+
+def _term_weight(mask: Tensor, terminal: Tensor) -> Tensor:
+    """[B, T]: the steps whose ``log_term`` enters the likelihood."""
+    T = mask.shape[1]
+    last = mask.sum(1, keepdim=True) - 1
+    steps = torch.arange(T, device=mask.device)
+    return (steps < last) | ((steps == last) & terminal.unsqueeze(1))
+
+
+def _forward_backward_reference(
+    log_pi: Tensor,
+    log_term: Tensor,
+    log_cont: Tensor,
+    log_eta: Tensor,
+    mask: Tensor,
+    terminal: Tensor,
+    row_ids: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The reference: normalised log-space forward-backward, one step at a time, O(K) per step.
+
+    Works on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w)``. ``row_ids`` (the
+    rows' indices in the caller's batch) only serve the zero-likelihood error message.
     """
     B, T, K = log_pi.shape
     lengths = mask.sum(1)
     last = lengths - 1
-    steps = torch.arange(T, device=log_pi.device)
     # After step t the option either terminates (A) or continues (C); both include pi_h(a_t | s_t).
     switch = log_pi + log_term
     stay = log_pi + log_cont
@@ -165,11 +192,8 @@ def _forward_backward_impl(
     alpha_last = alpha.gather(1, last_idx).squeeze(1)
     log_likelihood = log_z.sum(1) + (alpha_last + end).logsumexp(-1)
     if not torch.isfinite(log_likelihood).all():
-        rows = (~torch.isfinite(log_likelihood)).nonzero().flatten().tolist()
-        raise ValueError(
-            f"trajectories {rows[:10]} have zero likelihood: at some step no option can produce the action taken "
-            "(every option's log_pi, or every path through log_term/log_cont/log_eta, is -inf)."
-        )
+        rows = (~torch.isfinite(log_likelihood)).nonzero().flatten()
+        _raise_zero_likelihood((rows if row_ids is None else row_ids[rows]).tolist())
 
     # Backward: beta_t = log P(a_t, s_{t+1}, ... | s_t, h_t), normalised over h at each step.
     betas = [None] * T
@@ -199,8 +223,99 @@ def _forward_backward_impl(
         vn = valid_next.unsqueeze(-1)
         v[:, 1:] = torch.where(vn, (log_sw - norm).exp(), 0.0)
         w[:, :-1] = torch.where(vn, (log_st - norm).exp(), 0.0)
-    term_weight = (steps < last.unsqueeze(1)) | ((steps == last.unsqueeze(1)) & terminal.unsqueeze(1))
-    return log_likelihood, u, v, w, term_weight
+    return log_likelihood, u, v, w
+
+
+# Chunked path: process at most this many bytes of transfer matrices ([rows, chunks, K, K] float64) at once.
+_CHUNKED_MAX_BYTES = 64 * 2**20
+# "auto" uses the reference below this many steps (the chunked path's fixed costs do not pay off).
+_AUTO_MIN_STEPS = 16
+# Largest K the Triton kernel handles (K is padded to a power of two held in registers).
+_TRITON_MAX_K = 128
+
+BACKENDS = ("auto", "reference", "chunked", "triton")
+
+
+def _chunked_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
+    """The chunked path of :mod:`._chunked`, by groups of rows to bound memory, with the rows it flags
+    recomputed by the reference."""
+    from torchrl_options.inference._chunked import choose_chunk_length, chunked_forward_backward
+
+    B, T, K = log_pi.shape
+    L = choose_chunk_length(T)
+    per_row = -(-T // L) * K * K * 8
+    step = max(1, _CHUNKED_MAX_BYTES // per_row)
+    outs = []
+    for start in range(0, B, step):
+        sl = slice(start, start + step)
+        outs.append(
+            chunked_forward_backward(log_pi[sl], log_term[sl], log_cont[sl], log_eta[sl], mask[sl], terminal[sl], L)
+        )
+    ll, u, v, w, bad = (torch.cat(x, 0) for x in zip(*outs)) if len(outs) > 1 else outs[0]
+    if bad.any():
+        rows = bad.nonzero().flatten()
+        ref = _forward_backward_reference(
+            log_pi[rows], log_term[rows], log_cont[rows], log_eta[rows], mask[rows], terminal[rows], row_ids=rows
+        )
+        for out, r in zip((ll, u, v, w), ref):
+            out[rows] = r
+    return ll, u, v, w
+
+
+def _triton_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
+    from torchrl_options.inference._triton_fb import triton_forward_backward
+
+    ll, u, v, w = triton_forward_backward(log_pi, log_term, log_cont, log_eta, mask, terminal)
+    if not torch.isfinite(ll).all():
+        # Only a trajectory of zero likelihood does this: the reference names the rows (and raises).
+        rows = (~torch.isfinite(ll)).nonzero().flatten()
+        _raise_zero_likelihood(rows.tolist())
+    return ll, u, v, w
+
+
+_BACKENDS = {
+    "reference": _forward_backward_reference,
+    "chunked": _chunked_backend,
+    "triton": _triton_backend,
+}
+
+
+def triton_available(device: torch.device | str | None = None) -> bool:
+    """Whether the Triton backend can run on ``device``: Triton imports and the device is CUDA (or Triton's
+    interpreter is on, ``TRITON_INTERPRET=1``, which runs the kernel on the CPU, slowly: for tests only)."""
+    from torchrl_options.inference._triton_fb import triton_importable, triton_interpret
+
+    if not triton_importable():
+        return False
+    if triton_interpret():
+        return True
+    dev = torch.device(device) if device is not None else None
+    return dev is not None and dev.type == "cuda" and torch.cuda.is_available()
+
+
+def resolve_backend(backend: str, log_pi: Tensor) -> str:
+    """The backend that ``forward_backward(..., backend=backend)`` runs for inputs like ``log_pi``.
+
+    ``"auto"``: ``"triton"`` for CUDA tensors when Triton is available and ``K <= 128``; otherwise ``"chunked"``
+    when there are at least 16 steps; otherwise ``"reference"``. An explicit ``"triton"`` without CUDA and Triton
+    raises a ``ValueError``.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")
+    B, T, K = log_pi.shape
+    if backend == "triton":
+        if not triton_available(log_pi.device):
+            raise ValueError(
+                f"backend='triton' needs Triton and CUDA tensors (got tensors on {log_pi.device}); use 'auto'."
+            )
+        if K > _TRITON_MAX_K:
+            raise ValueError(f"backend='triton' supports K <= {_TRITON_MAX_K} options, got K = {K}.")
+        return backend
+    if backend != "auto":
+        return backend
+    if log_pi.device.type == "cuda" and K <= _TRITON_MAX_K and triton_available(log_pi.device):
+        return "triton"
+    return "chunked" if T >= _AUTO_MIN_STEPS else "reference"
 
 
 class _ForwardBackward(torch.autograd.Function):
@@ -208,9 +323,9 @@ class _ForwardBackward(torch.autograd.Function):
     d/dlog_term = u - w (u at a terminal row's last step)."""
 
     @staticmethod
-    def forward(ctx, log_pi, log_term, log_cont, log_eta, mask, terminal):
-        ll, u, v, w, term_weight = _forward_backward_impl(log_pi, log_term, log_cont, log_eta, mask, terminal)
-        ctx.save_for_backward(u, v, w, term_weight)
+    def forward(ctx, log_pi, log_term, log_cont, log_eta, mask, terminal, backend):
+        ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
+        ctx.save_for_backward(u, v, w, _term_weight(mask, terminal))
         ctx.mark_non_differentiable(u, v, w)
         return ll, u, v, w
 
@@ -220,7 +335,7 @@ class _ForwardBackward(torch.autograd.Function):
         u, v, w, term_weight = ctx.saved_tensors
         g = grad_ll.view(-1, 1, 1)
         grad_term = torch.where(term_weight.unsqueeze(-1), u - w, 0.0)
-        return g * u, g * grad_term, g * w, g * v, None, None
+        return g * u, g * grad_term, g * w, g * v, None, None, None
 
 
 def forward_backward(
@@ -232,6 +347,7 @@ def forward_backward(
     terminal: bool | Tensor = False,
     *,
     validate: bool = True,
+    backend: str = "auto",
 ) -> ForwardBackwardOutput:
     r"""Exact posterior over the options' latent chain of demonstration trajectories (the E-step of DDO).
 
@@ -269,6 +385,16 @@ def forward_backward(
     Keyword Args:
         validate (bool): check shapes, masks and values and raise a ``ValueError`` naming the argument.
             Defaults to ``True``; turning it off saves a few device synchronisations.
+        backend (str): how the recursion is computed; all give the same results (to float rounding) and the same
+            gradient. ``"reference"``: one step at a time (T sequential steps of O(K) work). ``"chunked"``: the
+            time axis cut into chunks of about ``sqrt(T / 2)`` steps, chunk transfer matrices composed in
+            parallel, a scan across chunks, then every message recovered in parallel by the reference's own
+            log-space step; rows whose chunk boundaries do not check out (possible only with extreme
+            near-deterministic probabilities) are recomputed by the reference (about ``3 sqrt(T)`` sequential
+            steps of O(K^2) work, computed in float64). ``"triton"``: a fused GPU kernel (CUDA and Triton), the
+            time loop inside the kernel, one program per block of rows. ``"auto"`` (default): ``"triton"`` for
+            CUDA tensors when Triton is available and K <= 128, else ``"chunked"`` when T >= 16, else
+            ``"reference"`` (see :func:`resolve_backend`).
 
     Returns:
         ForwardBackwardOutput: ``log_likelihood`` ``[B]`` and the detached marginals ``u``, ``v``, ``w``
@@ -295,6 +421,8 @@ def forward_backward(
         >>> torch.allclose(log_pi.grad, out.u, atol=1e-6)
         True
     """
+    if not isinstance(backend, str) or backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")
     if validate:
         mask, terminal = check_forward_backward_inputs(log_pi, log_term, log_cont, log_eta, mask, terminal)
     else:
@@ -311,5 +439,6 @@ def forward_backward(
             torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))
             for x in (log_pi, log_term, log_cont, log_eta)
         )
-    ll, u, v, w = _ForwardBackward.apply(log_pi, log_term, log_cont, log_eta, mask, terminal)
+    backend = resolve_backend(backend, log_pi)
+    ll, u, v, w = _ForwardBackward.apply(log_pi, log_term, log_cont, log_eta, mask, terminal, backend)
     return ForwardBackwardOutput(log_likelihood=ll, u=u, v=v, w=w)

@@ -1,0 +1,251 @@
+"""DDOLoss: the Expectation-Gradient identity of section 4.2, TorchRL batch layouts, keys and bad input."""
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from torchrl_options import as_trajectory_batch, DDOLoss, forward_backward, GaussianOptionsMLP, MetaControlMLP, option_log_probs, OptionsMLP
+
+
+def _trajectories(B=4, T=12, obs_dim=3, A=4, lengths=None, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(B, T + 1, obs_dim, generator=g)
+    lengths = lengths or [T] * B
+    mask = torch.arange(T)[None] < torch.tensor(lengths)[:, None]
+    terminated = torch.zeros(B, T, 1, dtype=torch.bool)
+    terminated[0, lengths[0] - 1] = True
+    return TensorDict(
+        {
+            "observation": obs[:, :-1].clone(),
+            "action": torch.randint(A, (B, T), generator=g),
+            "next": {"observation": obs[:, 1:].clone(), "terminated": terminated},
+            ("collector", "mask"): mask,
+        },
+        [B, T],
+    )
+
+
+@pytest.mark.parametrize("learned_meta", [False, True])
+def test_gradient_equals_weighted_cross_entropy(learned_meta):
+    """The loss gradient is the explicit G-step of section 4.2 built from detached u, v, w."""
+    torch.manual_seed(0)
+    data = _trajectories(lengths=[12, 9, 5, 1])
+    options = OptionsMLP(3, 4, 3, num_cells=8)
+    meta = MetaControlMLP(3, 3, num_cells=8) if learned_meta else None
+    loss = DDOLoss(options, meta)
+    params = list(loss.parameters())
+
+    grads = torch.autograd.grad(loss(data)["loss_ddo"], params)
+
+    p = loss.log_probabilities(data)
+    with torch.no_grad():
+        fb = forward_backward(p["log_pi"], p["log_term"], p["log_cont"], p["log_eta"], p["mask"], p["terminal"])
+    mask = p["mask"]
+    last = mask.sum(1) - 1
+    steps = torch.arange(mask.shape[1])
+    before_last = (steps[None] < last[:, None]).unsqueeze(-1)
+    at_last_terminal = ((steps[None] == last[:, None]) & p["terminal"][:, None]).unsqueeze(-1)
+    u, v, w = fb.u, fb.v, fb.w
+    objective = (
+        (u * p["log_pi"]).sum()
+        + (v * p["log_eta"]).sum()
+        + torch.where(before_last, (u - w) * p["log_term"] + w * p["log_cont"], 0.0).sum()
+        + torch.where(at_last_terminal, u * p["log_term"], 0.0).sum()
+    )
+    explicit = torch.autograd.grad(-objective / mask.sum(), params, allow_unused=True)
+    assert p["terminal"][0] and not p["terminal"][1:].any()
+    for g, e in zip(grads, explicit):
+        torch.testing.assert_close(g, torch.zeros_like(g) if e is None else e, rtol=1e-4, atol=1e-6)
+
+
+def test_single_option_equals_behaviour_cloning():
+    torch.manual_seed(1)
+    data = _trajectories(lengths=[12, 3, 7, 12])
+    options = OptionsMLP(3, 4, 1, num_cells=8)
+    # no terminal row: a terminal row would add log psi(s_T) to the likelihood
+    out = DDOLoss(options, terminal_at_end=False)(data)
+    logits = options(data.select("observation"))["option_logits"][..., 0, :]
+    bc = torch.nn.functional.cross_entropy(logits[data["collector", "mask"]], data["action"][data["collector", "mask"]])
+    torch.testing.assert_close(out["loss_ddo"], bc)
+    torch.testing.assert_close(out["option_entropy"], torch.tensor(0.0))
+
+
+def test_diagnostics_are_detached_and_sensible():
+    data = _trajectories()
+    out = DDOLoss(OptionsMLP(3, 4, 3))(data)
+    assert out["loss_ddo"].requires_grad
+    for key in ("log_likelihood_per_step", "option_duration", "option_entropy", "termination_probability"):
+        assert not out[key].requires_grad
+    assert out["option_duration"] >= 1
+    assert 0 <= out["option_entropy"] <= math.log(3) + 1e-6
+    assert 0 < out["termination_probability"] < 1
+    torch.testing.assert_close(out["log_likelihood_per_step"], -out["loss_ddo"].detach())
+
+
+def test_termination_is_evaluated_at_the_next_state():
+    """psi enters at s_{t+1}: changing the last next-observation changes the loss only with a terminal row."""
+    torch.manual_seed(0)
+    options = OptionsMLP(3, 4, 2, num_cells=8)
+    data = _trajectories(B=1, T=6)
+    changed = data.clone()
+    changed["next", "observation"][0, -1] += 5.0
+    loss = DDOLoss(options, terminal_at_end=True)
+    data["next", "terminated"][:] = False
+    changed["next", "terminated"][:] = False
+    torch.testing.assert_close(loss(data)["loss_ddo"], loss(changed)["loss_ddo"])
+    data["next", "terminated"][0, -1] = True
+    changed["next", "terminated"][0, -1] = True
+    assert not torch.allclose(loss(data)["loss_ddo"], loss(changed)["loss_ddo"])
+    # and the current observation at t=0 does not enter termination: shifting next obs at t=2 changes the loss
+    other = data.clone()
+    other["next", "observation"][0, 2] += 5.0
+    assert not torch.allclose(loss(data)["loss_ddo"], loss(other)["loss_ddo"])
+
+
+def test_reductions():
+    data = _trajectories(lengths=[12, 5, 5, 5])
+    options = OptionsMLP(3, 4, 2)
+    per_traj = DDOLoss(options, reduction="none")(data)["loss_ddo"]
+    assert per_traj.shape == (4,)
+    torch.testing.assert_close(DDOLoss(options, reduction="sum")(data)["loss_ddo"], per_traj.sum())
+    torch.testing.assert_close(DDOLoss(options)(data)["loss_ddo"], per_traj.sum() / 27)
+
+
+def test_set_keys_and_one_hot_actions():
+    torch.manual_seed(0)
+    data = _trajectories()
+    options = OptionsMLP(3, 4, 2)
+    ref = DDOLoss(options)(data)["loss_ddo"]
+    renamed = data.clone()
+    renamed.set(("expert", "act"), torch.nn.functional.one_hot(renamed.pop("action"), 4))
+    renamed.set("valid", renamed.pop(("collector", "mask")))
+    loss = DDOLoss(options)
+    loss.set_keys(action=("expert", "act"), mask="valid")
+    torch.testing.assert_close(loss(renamed)["loss_ddo"], ref)
+    assert ("expert", "act") in loss.in_keys and "valid" in loss.in_keys
+
+
+def test_padding_is_ignored():
+    torch.manual_seed(0)
+    data = _trajectories(lengths=[12, 6, 12, 3])
+    options = OptionsMLP(3, 4, 2)
+    ref = DDOLoss(options)(data)["loss_ddo"]
+    data["observation"][1, 6:] = float("nan")
+    data["next", "observation"][1, 6:] = float("inf")
+    data["action"][1, 6:] = 99
+    out = DDOLoss(options)(data)["loss_ddo"]
+    torch.testing.assert_close(out, ref)
+    out.backward()
+    assert all(torch.isfinite(p.grad).all() for p in options.parameters())
+
+
+def test_gaussian_options_log_probs_match_torch_distributions():
+    torch.manual_seed(0)
+    options = GaussianOptionsMLP(3, 2, 3, num_cells=8, init_scale=0.7)
+    td = options(TensorDict({"observation": torch.randn(5, 3)}, [5]))
+    action = torch.randn(5, 2)
+    logp = option_log_probs(td, action)
+    for h in range(3):
+        dist = torch.distributions.Independent(torch.distributions.Normal(td["option_loc"][:, h], td["option_scale"][:, h]), 1)
+        torch.testing.assert_close(logp[:, h], dist.log_prob(action))
+
+
+def test_gaussian_ddo_loss_trains():
+    torch.manual_seed(0)
+    data = _trajectories()
+    data["action"] = torch.randn(4, 12, 2)
+    options = GaussianOptionsMLP(3, 2, 2, num_cells=8)
+    out = DDOLoss(options)(data)
+    out["loss_ddo"].backward()
+    assert options.raw_scale.grad.abs().sum() > 0
+
+
+def test_works_on_slice_sampler_batches():
+    """Trajectories from a replay buffer with a SliceSampler, split into [B, T] with a mask."""
+    from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
+
+    flat = _trajectories(B=3, T=20).exclude(("collector", "mask")).reshape(-1)
+    flat.set(("collector", "traj_ids"), torch.arange(60) // 20)
+    rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(100),
+        sampler=SliceSampler(num_slices=4, traj_key=("collector", "traj_ids"), strict_length=False),
+        batch_size=32,
+    )
+    rb.extend(flat)
+    # (TorchRL's split_trajectories merges two slices of one trajectory: as_trajectory_batch keeps them apart)
+    batch = as_trajectory_batch(rb.sample(), trajectory_key=("collector", "traj_ids"))
+    assert batch.batch_size[0] == 4 and batch["collector", "mask"].sum() == 32
+    out = DDOLoss(OptionsMLP(3, 4, 2))(batch)
+    assert torch.isfinite(out["loss_ddo"])
+
+
+def test_works_on_padded_collector_trajectories():
+    """Whole episodes from a TorchRL Collector with traj_format='padded'."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import StepCounter, TransformedEnv
+    from torchrl.testing.mocking_classes import DiscreteActionVecMockEnv
+
+    env = TransformedEnv(DiscreteActionVecMockEnv(), StepCounter(max_steps=7))
+    collector = Collector(env, policy=None, frames_per_batch=30, total_frames=30, trajs_per_batch=3, traj_format="padded")
+    batch = next(iter(collector))
+    collector.shutdown()
+    obs_dim = batch["observation"].shape[-1]
+    A = batch["action"].shape[-1]
+    assert batch["collector", "mask"].ndim == 2
+    out = DDOLoss(OptionsMLP(obs_dim, A, 2))(batch)  # one-hot actions of the mock env
+    out["loss_ddo"].backward()
+    assert torch.isfinite(out["loss_ddo"])
+
+
+class TestBadInput:
+    def test_action_out_of_range(self):
+        data = _trajectories()
+        data["action"][2, 3] = 4
+        with pytest.raises(ValueError, match="'action' holds 4, outside"):
+            DDOLoss(OptionsMLP(3, 4, 2))(data)
+
+    def test_action_wrong_shape(self):
+        data = _trajectories()
+        data["action"] = torch.zeros(4, 12, 3, dtype=torch.long)
+        with pytest.raises(ValueError, match="action"):
+            DDOLoss(OptionsMLP(3, 4, 2))(data)
+
+    def test_nan_observation(self):
+        data = _trajectories()
+        data["next", "observation"][1, 2, 0] = float("nan")
+        with pytest.raises(ValueError, match="'next', 'observation'.*NaN"):
+            DDOLoss(OptionsMLP(3, 4, 2))(data)
+
+    def test_mismatched_option_counts(self):
+        with pytest.raises(ValueError, match="num_options"):
+            DDOLoss(OptionsMLP(3, 4, 2), MetaControlMLP(3, 3))
+
+    def test_meta_control_output_mismatch_at_run_time(self):
+        meta = TensorDictModule(torch.nn.Linear(3, 5), in_keys=["observation"], out_keys=["meta_logits"])
+        with pytest.raises(ValueError, match="meta_logits.*5"):
+            DDOLoss(OptionsMLP(3, 4, 2), meta)(_trajectories())
+
+    def test_termination_output_mismatch(self):
+        class Bad(torch.nn.Module):
+            def forward(self, obs):
+                return torch.zeros(*obs.shape[:-1], 2, 4), torch.zeros(*obs.shape[:-1], 3)
+
+        options = TensorDictModule(Bad(), in_keys=["observation"], out_keys=["option_logits", "termination_logits"])
+        with pytest.raises(ValueError, match="termination_logits"):
+            DDOLoss(options)(_trajectories())
+
+    def test_empty_batch(self):
+        with pytest.raises(ValueError, match="empty"):
+            DDOLoss(OptionsMLP(3, 4, 2))(_trajectories()[:0])
+
+    def test_non_prefix_mask(self):
+        data = _trajectories()
+        data["collector", "mask"][1, 3] = False
+        with pytest.raises(ValueError, match="prefix"):
+            DDOLoss(OptionsMLP(3, 4, 2))(data)
+
+    def test_wrong_batch_dims(self):
+        with pytest.raises(ValueError, match=r"\[B, T\]"):
+            DDOLoss(OptionsMLP(3, 4, 2))(_trajectories().unsqueeze(0))

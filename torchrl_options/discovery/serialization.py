@@ -1,0 +1,128 @@
+"""Saving and loading discovered options: weights plus the configuration needed to rebuild them."""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
+
+__all__ = ["save_options", "load_options", "module_to_dict", "module_from_dict"]
+
+_FORMAT = "torchrl_options/options-v1"
+_CLASSES: dict[str, type] = {
+    cls.__name__: cls for cls in (OptionsMLP, GaussianOptionsMLP, MetaControlMLP, UniformMetaControl)
+}
+
+
+def _keys_from_config(value: Any) -> Any:
+    # nested keys are stored as lists (tuples are not plain data); turn them back into tuples
+    if isinstance(value, list):
+        return [tuple(v) if isinstance(v, list) else v for v in value]
+    return value
+
+
+def module_to_dict(module: TensorDictModuleBase) -> dict:
+    """The class name, configuration and weights of one of this package's modules, as plain data.
+
+    Raises:
+        ValueError: for a module that does not carry a ``config`` (a hand-written module): save it with
+            ``torch.save`` instead.
+    """
+    name = type(module).__name__
+    if _CLASSES.get(name) is not type(module) or not isinstance(getattr(module, "config", None), dict):
+        raise ValueError(
+            f"cannot save a {name} by configuration: only {sorted(_CLASSES)} can be rebuilt from a file. Save a "
+            "hand-written module with torch.save(module.state_dict(), ...) and rebuild it in code."
+        )
+    return {"class": name, "config": dict(module.config), "state_dict": {k: v.detach().cpu() for k, v in module.state_dict().items()}}
+
+
+def module_from_dict(entry: dict) -> TensorDictModuleBase:
+    """Rebuilds a module saved by :func:`module_to_dict`."""
+    cls = _CLASSES.get(entry.get("class"))
+    if cls is None:
+        raise ValueError(f"unknown module class {entry.get('class')!r} in the file; expected one of {sorted(_CLASSES)}.")
+    config = dict(entry["config"])
+    for key in ("in_keys", "out_keys"):
+        if key in config:
+            config[key] = _keys_from_config(config[key])
+    if isinstance(config.get("out_key"), list):
+        config["out_key"] = tuple(config["out_key"])
+    module = _build(cls, config)
+    module.load_state_dict(entry["state_dict"])
+    return module
+
+
+def _build(cls: type, config: dict) -> TensorDictModuleBase:
+    if cls is OptionsMLP:
+        return cls(config.pop("in_features"), config.pop("num_actions"), config.pop("num_options"), **config)
+    if cls is GaussianOptionsMLP:
+        return cls(config.pop("in_features"), config.pop("action_dim"), config.pop("num_options"), **config)
+    if cls is MetaControlMLP:
+        return cls(config.pop("in_features"), config.pop("num_options"), **config)
+    return cls(config.pop("num_options"), **config)
+
+
+def save_options(
+    options: TensorDictModuleBase,
+    path: str | os.PathLike,
+    *,
+    meta_control: TensorDictModuleBase | None = None,
+    metadata: dict | None = None,
+) -> None:
+    """Saves discovered options (and optionally their meta-control) to ``path``.
+
+    The file holds plain data (class names, configurations, tensors) and loads with ``weights_only=True``.
+
+    Args:
+        options (TensorDictModuleBase): an :class:`~torchrl_options.OptionsMLP` or
+            :class:`~torchrl_options.GaussianOptionsMLP`.
+        path (str or PathLike): the file to write.
+
+    Keyword Args:
+        meta_control (TensorDictModuleBase, optional): saved next to the options.
+        metadata (dict, optional): plain data to keep with them (e.g. the discovery settings).
+
+    Examples:
+        >>> import tempfile, os, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options import OptionsMLP, save_options, load_options
+        >>> options = OptionsMLP(4, 3, 2)
+        >>> path = os.path.join(tempfile.mkdtemp(), "options.pt")
+        >>> save_options(options, path)
+        >>> loaded = load_options(path)
+        >>> td = TensorDict({"observation": torch.randn(2, 4)}, [2])
+        >>> torch.equal(options(td.clone())["option_logits"], loaded(td.clone())["option_logits"])
+        True
+    """
+    payload = {"format": _FORMAT, "options": module_to_dict(options), "metadata": dict(metadata or {})}
+    if meta_control is not None:
+        payload["meta_control"] = module_to_dict(meta_control)
+    torch.save(payload, path)
+
+
+def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, map_location=None):
+    """Loads options saved by :func:`save_options`.
+
+    Args:
+        path (str or PathLike): the file.
+
+    Keyword Args:
+        with_meta_control (bool): also return the meta-control module (``None`` if none was saved) and the
+            metadata, as ``(options, meta_control, metadata)``.
+        map_location: passed to :func:`torch.load`.
+
+    Raises:
+        ValueError: if the file is not an options file of this package.
+    """
+    payload = torch.load(path, map_location=map_location, weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
+        raise ValueError(f"{os.fspath(path)!r} is not an options file written by torchrl_options.save_options.")
+    options = module_from_dict(payload["options"])
+    if not with_meta_control:
+        return options
+    meta = payload.get("meta_control")
+    return options, (module_from_dict(meta) if meta is not None else None), payload.get("metadata", {})

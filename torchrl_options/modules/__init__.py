@@ -1,0 +1,5 @@
+"""Options and meta-control policies as TensorDict modules."""
+from torchrl_options.modules.meta_control import MetaControlMLP, UniformMetaControl
+from torchrl_options.modules.options import GaussianOptionsMLP, OptionsMLP
+
+__all__ = ["GaussianOptionsMLP", "MetaControlMLP", "OptionsMLP", "UniformMetaControl"]

@@ -1,0 +1,71 @@
+"""Shared plumbing of the observation-reading modules: input concatenation, activations, configs."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+_ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "elu": nn.ELU,
+    "gelu": nn.GELU,
+    "silu": nn.SiLU,
+    "identity": nn.Identity,
+}
+
+
+def activation_class(name: str) -> type[nn.Module]:
+    """Returns the activation class registered under ``name`` (``"tanh"``, ``"relu"``, ``"elu"``, ...)."""
+    try:
+        return _ACTIVATIONS[name.lower()]
+    except KeyError:
+        raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {name!r}.") from None
+
+
+def as_key_list(keys: NestedKey | Sequence[NestedKey], name: str) -> list[NestedKey]:
+    if isinstance(keys, (str, tuple)):
+        keys = [keys]
+    keys = list(keys)
+    if not keys:
+        raise ValueError(f"{name} must name at least one key.")
+    return keys
+
+
+def hidden_sizes(num_cells: int | Sequence[int]) -> list[int]:
+    if isinstance(num_cells, int):
+        return [num_cells]
+    return [int(c) for c in num_cells]
+
+
+class ObservationModule(TensorDictModuleBase):
+    """Base of the modules that read observation keys, concatenated along the last dimension.
+
+    Subclasses record the constructor arguments in ``self.config`` (plain Python values only) so that
+    :func:`~torchrl_options.save_options` can rebuild them.
+    """
+
+    config: dict
+
+    def features(self, tensordict: TensorDictBase) -> torch.Tensor:
+        xs = []
+        for key in self.in_keys:
+            x = tensordict.get(key, None)
+            if x is None:
+                raise KeyError(f"{type(self).__name__} reads {key!r}, which is missing from the input tensordict.")
+            xs.append(x)
+        dtype = self.param_dtype()
+        xs = [x.to(dtype) for x in xs]
+        return torch.cat(xs, -1) if len(xs) > 1 else xs[0]
+
+    def param_dtype(self) -> torch.dtype:
+        for p in self.parameters():
+            return p.dtype
+        return torch.get_default_dtype()
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in self.config.items())

@@ -1,0 +1,4 @@
+"""Planted structures with known ground truth, for tests, benchmarks and sanity checks of discovery."""
+from torchrl_options.testing.planted import label_accuracy, planted_corridor_demonstrations
+
+__all__ = ["label_accuracy", "planted_corridor_demonstrations"]
