@@ -1,0 +1,73 @@
+"""Shared experiment plumbing: resumable results, bootstrap intervals, summaries, plots."""
+import numpy as np
+import pytest
+
+from torchrl_options.experiments import (
+    bootstrap_ci,
+    episodes_to_reach,
+    plot_curves,
+    ResultsLog,
+    summarize,
+    summary_markdown,
+)
+
+
+def test_results_log_is_resumable(tmp_path):
+    path = tmp_path / "out" / "results.csv"
+    log = ResultsLog(path)
+    log.append_cell("s", "A", 0, [0.0, 1.0], frames=[10, 20])
+    again = ResultsLog(path)  # a new run opens the same file
+    assert again.is_done("s", "A", 0) and not again.is_done("s", "A", 1)
+    with pytest.raises(ValueError, match="already"):
+        again.append_cell("s", "A", 0, [1.0])
+    again.append_cell("s", "H1u", 0, [2.0])
+    rows = again.rows()
+    assert [(r["condition"], r["episode"], r["return"], r["frames"]) for r in rows] == [
+        ("A", 0, 0.0, 10), ("A", 1, 1.0, 20), ("H1u", 0, 2.0, None)
+    ]
+    with pytest.raises(ValueError, match="frames"):
+        again.append_cell("s", "H1s", 0, [1.0, 2.0], frames=[1])
+
+
+def test_bootstrap_ci_covers_the_mean_and_shrinks_with_data():
+    rng = np.random.default_rng(0)
+    small = bootstrap_ci(rng.normal(1.0, 1.0, 10))
+    large = bootstrap_ci(rng.normal(1.0, 1.0, 1000))
+    assert small[1] < small[0] < small[2]
+    assert large[1] < 1.0 < large[2]
+    assert (large[2] - large[1]) < (small[2] - small[1])
+    assert bootstrap_ci([3.0]) == (3.0, 3.0, 3.0)
+    with pytest.raises(ValueError):
+        bootstrap_ci([])
+
+
+def test_episodes_to_reach():
+    assert episodes_to_reach([0, 0, 0, 1, 1, 1, 1], 1.0, window=3) == 6
+    assert episodes_to_reach([1, 1, 1], 1.0, window=1) == 1
+    assert episodes_to_reach([0, 0.5], 1.0, window=1) is None
+
+
+def test_summary_against_hand_computed_figures(tmp_path):
+    log = ResultsLog(tmp_path / "results.csv")
+    # actions only: slow ramp to 1; options: reach 1 after 3 episodes
+    for seed in range(3):
+        log.append_cell("sup", "A", seed, [0.0] * 6 + [1.0] * 4)
+        log.append_cell("sup", "H1u", seed, [0.0] * 2 + [1.0] * 8)
+    summaries = summarize(log, final_window=2, smooth_window=2)
+    by = {s.condition: s for s in summaries}
+    assert by["A"].final_return == (1.0, 1.0, 1.0)
+    assert by["A"].episodes_to_baseline[0] == 8 and by["H1u"].episodes_to_baseline[0] == 4
+    assert by["H1u"].reached == 3
+    table = summary_markdown(summaries, final_window=2)
+    assert "| sup | H1u | 3 | 10 | 1.000 [1.000, 1.000] | 4 [4, 4] | 3/3 |" in table
+
+
+def test_plot_curves_writes_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    log = ResultsLog(tmp_path / "results.csv")
+    for seed in range(2):
+        log.append_cell("sup", "A", seed, list(np.linspace(0, 1, 30)))
+        log.append_cell("sup", "H1u", seed, list(np.linspace(0, 2, 30)))
+    plot_curves(log, tmp_path / "curves.png", smooth_window=5)
+    data = (tmp_path / "curves.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000

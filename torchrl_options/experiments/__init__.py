@@ -1,0 +1,20 @@
+"""What the recipes share: resumable results, summaries with bootstrap intervals, learning-curve plots."""
+from torchrl_options.experiments.plotting import plot_curves
+from torchrl_options.experiments.results import (
+    bootstrap_ci,
+    ConditionSummary,
+    episodes_to_reach,
+    ResultsLog,
+    summarize,
+    summary_markdown,
+)
+
+__all__ = [
+    "bootstrap_ci",
+    "ConditionSummary",
+    "episodes_to_reach",
+    "plot_curves",
+    "ResultsLog",
+    "summarize",
+    "summary_markdown",
+]

@@ -1,0 +1,246 @@
+"""Experiment results shared by the recipes: a resumable long-format CSV, summaries with bootstrap intervals.
+
+Every recipe writes ``results.csv`` with one row per episode, in long format (``setting, condition, seed,
+episode, return`` and optionally ``frames``), appends a cell's rows only when the cell (a setting, condition and
+seed) has finished, and skips finished cells when run again — so a killed recipe loses no finished seed.
+"""
+from __future__ import annotations
+
+import csv
+import logging
+import os
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "ResultsLog",
+    "bootstrap_ci",
+    "episodes_to_reach",
+    "ConditionSummary",
+    "summarize",
+    "summary_markdown",
+]
+
+logger = logging.getLogger(__name__)
+
+FIELDS = ("setting", "condition", "seed", "episode", "return", "frames")
+
+
+class ResultsLog:
+    """An append-only, resumable ``results.csv``: one row per episode of a (setting, condition, seed) cell.
+
+    Args:
+        path (str): the CSV file; created with a header if missing.
+
+    Examples:
+        >>> import os, tempfile
+        >>> log = ResultsLog(os.path.join(tempfile.mkdtemp(), "results.csv"))
+        >>> log.append_cell("supervised", "A", 0, returns=[0.0, 1.0, 2.0])
+        >>> log.is_done("supervised", "A", 0), log.is_done("supervised", "A", 1)
+        (True, False)
+        >>> log.returns("supervised", "A")
+        {0: [0.0, 1.0, 2.0]}
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = os.fspath(path)
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        if not os.path.exists(self.path):
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(FIELDS)
+
+    def rows(self) -> list[dict]:
+        with open(self.path, newline="") as f:
+            reader = csv.DictReader(f)
+            out = []
+            for row in reader:
+                row["seed"] = int(row["seed"])
+                row["episode"] = int(row["episode"])
+                row["return"] = float(row["return"])
+                row["frames"] = int(row["frames"]) if row.get("frames") not in (None, "") else None
+                out.append(row)
+        return out
+
+    def done_cells(self) -> set[tuple[str, str, int]]:
+        return {(r["setting"], r["condition"], r["seed"]) for r in self.rows()}
+
+    def is_done(self, setting: str, condition: str, seed: int) -> bool:
+        return (setting, condition, int(seed)) in self.done_cells()
+
+    def append_cell(
+        self,
+        setting: str,
+        condition: str,
+        seed: int,
+        returns: Sequence[float],
+        frames: Sequence[int] | None = None,
+    ) -> None:
+        """Appends a finished cell's episodes at once (a half-written cell is never left behind)."""
+        if self.is_done(setting, condition, seed):
+            raise ValueError(f"cell ({setting!r}, {condition!r}, seed={seed}) is already in {self.path}.")
+        if frames is not None and len(frames) != len(returns):
+            raise ValueError(f"frames has {len(frames)} entries but returns has {len(returns)}.")
+        lines = []
+        for i, r in enumerate(returns):
+            lines.append([setting, condition, int(seed), i, float(r), "" if frames is None else int(frames[i])])
+        tmp = self.path + ".tmp"
+        with open(self.path, newline="") as f:
+            existing = f.read()
+        with open(tmp, "w", newline="") as f:
+            f.write(existing)
+            csv.writer(f).writerows(lines)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+
+    def returns(self, setting: str, condition: str) -> dict[int, list[float]]:
+        """``{seed: [return of episode 0, 1, ...]}`` for one setting and condition."""
+        out: dict[int, list[float]] = defaultdict(list)
+        for r in self.rows():
+            if r["setting"] == setting and r["condition"] == condition:
+                out[r["seed"]].append(r["return"])
+        return dict(out)
+
+    def settings_and_conditions(self) -> list[tuple[str, str]]:
+        seen = []
+        for r in self.rows():
+            key = (r["setting"], r["condition"])
+            if key not in seen:
+                seen.append(key)
+        return seen
+
+
+def bootstrap_ci(
+    values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, num_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float, float]:
+    """Mean and percentile bootstrap confidence interval of the mean, ``(mean, low, high)``.
+
+    Examples:
+        >>> mean, low, high = bootstrap_ci([1.0, 2.0, 3.0, 4.0])
+        >>> mean, low <= mean <= high
+        (2.5, True)
+    """
+    x = np.asarray(values, dtype=float)
+    if x.size == 0:
+        raise ValueError("bootstrap_ci needs at least one value.")
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, x.size, size=(num_resamples, x.size))].mean(1)
+    alpha = (1 - confidence) / 2
+    return float(x.mean()), float(np.quantile(means, alpha)), float(np.quantile(means, 1 - alpha))
+
+
+def smooth(returns: Sequence[float], window: int) -> np.ndarray:
+    """Trailing moving average (the first entries average what is there)."""
+    x = np.asarray(returns, dtype=float)
+    c = np.cumsum(np.insert(x, 0, 0.0))
+    idx = np.arange(1, x.size + 1)
+    lo = np.maximum(idx - window, 0)
+    return (c[idx] - c[lo]) / (idx - lo)
+
+
+def episodes_to_reach(returns: Sequence[float], target: float, window: int) -> int | None:
+    """The first episode count after which the ``window``-episode moving average reaches ``target``.
+
+    Returns ``None`` when it never does.
+
+    Examples:
+        >>> episodes_to_reach([0, 0, 1, 1, 1, 1], target=1.0, window=2)
+        4
+    """
+    s = smooth(returns, window)
+    hit = np.nonzero(s >= target - 1e-12)[0]
+    hit = hit[hit >= min(window, len(s)) - 1]
+    return int(hit[0]) + 1 if hit.size else None
+
+
+@dataclass
+class ConditionSummary:
+    """Per (setting, condition) figures over seeds."""
+
+    setting: str
+    condition: str
+    num_seeds: int
+    num_episodes: int
+    final_return: tuple[float, float, float]
+    episodes_to_baseline: tuple[float, float, float] | None
+    reached: int
+
+
+def summarize(
+    log: ResultsLog | Iterable[dict],
+    *,
+    baseline: str = "A",
+    final_window: int = 100,
+    smooth_window: int = 100,
+    confidence: float = 0.95,
+) -> list[ConditionSummary]:
+    """Per setting and condition: the mean final return and the episodes needed to reach the baseline's.
+
+    The final return of a seed is its mean return over its last ``final_window`` episodes. The target of a
+    setting is the baseline condition's mean final return; a seed reaches it at the first episode where its
+    ``smooth_window`` moving average does. Seeds that never reach it count with their total number of episodes
+    (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are percentile bootstrap
+    intervals over seeds.
+    """
+    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
+    curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    order: list[tuple[str, str]] = []
+    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+        key = (r["setting"], r["condition"])
+        if key not in order:
+            order.append(key)
+        curves[key][r["seed"]].append(r["return"])
+    targets = {}
+    for (setting, condition), seeds in curves.items():
+        if condition == baseline:
+            finals = [np.mean(v[-final_window:]) for v in seeds.values()]
+            targets[setting] = float(np.mean(finals))
+    out = []
+    for setting, condition in order:
+        seeds = curves[(setting, condition)]
+        finals = [float(np.mean(v[-final_window:])) for v in seeds.values()]
+        to_reach = None
+        reached = 0
+        if setting in targets:
+            counts = []
+            for v in seeds.values():
+                n = episodes_to_reach(v, targets[setting], smooth_window)
+                reached += n is not None
+                counts.append(len(v) if n is None else n)
+            to_reach = bootstrap_ci(counts, confidence=confidence)
+        out.append(
+            ConditionSummary(
+                setting=setting,
+                condition=condition,
+                num_seeds=len(seeds),
+                num_episodes=max(len(v) for v in seeds.values()),
+                final_return=bootstrap_ci(finals, confidence=confidence),
+                episodes_to_baseline=to_reach,
+                reached=reached,
+            )
+        )
+    return out
+
+
+def summary_markdown(summaries: Sequence[ConditionSummary], *, baseline: str = "A", final_window: int = 100) -> str:
+    """The summary table in Markdown."""
+    lines = [
+        f"| setting | condition | seeds | episodes | final return (last {final_window}) [95% CI] | "
+        f"episodes to reach {baseline}'s final return [95% CI] | seeds that reach it |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in summaries:
+        m, lo, hi = s.final_return
+        if s.episodes_to_baseline is None:
+            reach = "n/a"
+        else:
+            em, elo, ehi = s.episodes_to_baseline
+            reach = f"{em:.0f} [{elo:.0f}, {ehi:.0f}]"
+        lines.append(
+            f"| {s.setting} | {s.condition} | {s.num_seeds} | {s.num_episodes} | {m:.3f} [{lo:.3f}, {hi:.3f}] | "
+            f"{reach} | {s.reached}/{s.num_seeds} |"
+        )
+    return "\n".join(lines) + "\n"
