@@ -1,0 +1,137 @@
+"""Sweeps over (setting, condition, seed) cells: serially, on a local process pool, or on a Ray cluster.
+
+The scheduling is the engine's (``concurrent.futures`` locally, Ray remotely): this module only maps a cell
+function over the cells that are not finished yet and appends each finished cell to one ``results.csv``
+(:class:`~torchrl_options.experiments.ResultsLog`) from the driver, so workers never write the same file and a
+re-run skips finished cells.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from torchrl_options.experiments.results import ResultsLog
+
+__all__ = ["Cell", "CellResult", "run_sweep"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One unit of work: a setting (e.g. a game or a task), a condition (e.g. ``"A"`` or ``"H1u"``) and a seed."""
+
+    setting: str
+    condition: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.setting}-{self.condition}-seed{self.seed}"
+
+
+@dataclass
+class CellResult:
+    """What a cell function returns: per-episode returns, optionally the env frames at the end of each episode."""
+
+    returns: list[float]
+    frames: list[int] | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _run_one(fn: Callable[[Cell], CellResult], cell: Cell, threads: int | None) -> tuple[Cell, CellResult]:
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    return cell, fn(cell)
+
+
+def run_sweep(
+    fn: Callable[[Cell], CellResult],
+    cells: Sequence[Cell],
+    log: ResultsLog,
+    *,
+    backend: str = "serial",
+    num_workers: int | None = None,
+    ray_address: str | None = None,
+    threads_per_worker: int | None = 1,
+    on_result: Callable[[Cell, CellResult], None] | None = None,
+) -> list[Cell]:
+    """Runs ``fn`` on every cell not yet in ``log`` and appends each result as soon as it arrives.
+
+    Args:
+        fn: a picklable top-level function ``Cell -> CellResult`` (it should checkpoint inside long cells
+            itself, e.g. under a directory named after ``cell.name``).
+        cells: the cells of the sweep.
+        log: the results file shared by every worker's cells.
+
+    Keyword Args:
+        backend (str): ``"serial"`` (default, in this process), ``"local"`` (a process pool of ``num_workers``) or
+            ``"ray"`` (Ray tasks; ``ray_address`` names an existing cluster, ``None`` starts a local one).
+        num_workers (int, optional): pool size for ``"local"`` (default: CPU count).
+        ray_address (str, optional): passed to ``ray.init(address=...)``.
+        threads_per_worker (int, optional): ``torch.set_num_threads`` in pool and Ray workers.
+        on_result (callable, optional): called in the driver with each finished cell and result.
+
+    Returns:
+        The cells that ran (finished cells found in ``log`` are skipped).
+
+    Examples:
+        >>> import os, tempfile
+        >>> log = ResultsLog(os.path.join(tempfile.mkdtemp(), "results.csv"))
+        >>> cells = [Cell("toy", "A", s) for s in range(2)]
+        >>> ran = run_sweep(_constant_cell, cells, log)
+        >>> len(ran), len(run_sweep(_constant_cell, cells, log))  # the second run skips both
+        (2, 0)
+    """
+    done = log.done_cells()
+    todo = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
+    skipped = len(cells) - len(todo)
+    if skipped:
+        logger.info("sweep: %d finished cells found in %s, %d to run", skipped, log.path, len(todo))
+
+    def record(cell: Cell, result: CellResult) -> None:
+        log.append_cell(cell.setting, cell.condition, cell.seed, result.returns, result.frames)
+        if on_result is not None:
+            on_result(cell, result)
+
+    if backend == "serial" or not todo:
+        for cell in todo:
+            record(cell, fn(cell))
+    elif backend == "local":
+        ctx = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=num_workers, mp_context=ctx) as pool:
+            futures = [pool.submit(_run_one, fn, cell, threads_per_worker) for cell in todo]
+            for future in cf.as_completed(futures):
+                record(*future.result())
+    elif backend == "ray":
+        try:
+            import ray
+        except ImportError as err:
+            raise ImportError("backend='ray' needs Ray: pip install 'torchrl-options[ray]'.") from err
+        started = False
+        if not ray.is_initialized():
+            ray.init(address=ray_address, num_cpus=num_workers if ray_address is None else None, log_to_driver=False)
+            started = True
+        try:
+            remote = ray.remote(_run_one)
+            pending = [remote.remote(fn, cell, threads_per_worker) for cell in todo]
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                record(*ray.get(ready[0]))
+        finally:
+            if started:
+                ray.shutdown()
+    else:
+        raise ValueError(f"backend must be 'serial', 'local' or 'ray', got {backend!r}.")
+    return todo
+
+
+def _constant_cell(cell: Cell) -> CellResult:
+    """A trivial cell function (for examples and tests)."""
+    return CellResult(returns=[float(cell.seed)] * 3, frames=[10, 20, 30])
