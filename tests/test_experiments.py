@@ -71,3 +71,35 @@ def test_plot_curves_writes_png(tmp_path):
     plot_curves(log, tmp_path / "curves.png", smooth_window=5)
     data = (tmp_path / "curves.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+@pytest.mark.parametrize("backend", ["serial", "local"])
+def test_sweep_runs_each_cell_once_and_resumes(tmp_path, backend):
+    from torchrl_options.experiments.sweep import _constant_cell, Cell, run_sweep
+
+    log = ResultsLog(tmp_path / "results.csv")
+    cells = [Cell("toy", c, s) for c in ("A", "H1u") for s in range(2)]
+    # a previous, killed run finished one cell
+    log.append_cell("toy", "A", 0, [0.0, 0.0, 0.0])
+    ran = run_sweep(_constant_cell, cells, log, backend=backend, num_workers=2)
+    assert sorted(c.name for c in ran) == ["toy-A-seed1", "toy-H1u-seed0", "toy-H1u-seed1"]
+    assert log.done_cells() == {(c.setting, c.condition, c.seed) for c in cells}
+    assert log.returns("toy", "H1u") == {0: [0.0] * 3, 1: [1.0] * 3}
+    assert run_sweep(_constant_cell, cells, log, backend=backend) == []
+
+
+def test_sweep_on_ray_local_cluster(tmp_path):
+    pytest.importorskip("ray")
+    from torchrl_options.experiments.sweep import _constant_cell, Cell, run_sweep
+
+    log = ResultsLog(tmp_path / "results.csv")
+    cells = [Cell("toy", "A", s) for s in range(3)]
+    assert len(run_sweep(_constant_cell, cells, log, backend="ray", num_workers=2)) == 3
+    assert log.returns("toy", "A")[2] == [2.0] * 3
+
+
+def test_sweep_bad_backend(tmp_path):
+    from torchrl_options.experiments.sweep import _constant_cell, Cell, run_sweep
+
+    with pytest.raises(ValueError, match="backend"):
+        run_sweep(_constant_cell, [Cell("t", "A", 0)], ResultsLog(tmp_path / "r.csv"), backend="slurm")

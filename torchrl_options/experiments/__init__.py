@@ -1,5 +1,6 @@
 """What the recipes share: resumable results, summaries with bootstrap intervals, learning-curve plots."""
 from torchrl_options.experiments.plotting import plot_curves
+from torchrl_options.experiments.sweep import Cell, CellResult, run_sweep
 from torchrl_options.experiments.results import (
     bootstrap_ci,
     ConditionSummary,
@@ -11,6 +12,9 @@ from torchrl_options.experiments.results import (
 
 __all__ = [
     "bootstrap_ci",
+    "Cell",
+    "CellResult",
+    "run_sweep",
     "ConditionSummary",
     "episodes_to_reach",
     "plot_curves",
