@@ -3,6 +3,7 @@
 Run: python recipes/quickstart.py
 """
 import logging
+import os
 
 import torch
 
@@ -24,9 +25,10 @@ def main() -> None:
     print(f"| mean option duration (steps) | {last['option_duration']:.2f} |")
     print(f"| option usage entropy (nats) | {last['option_entropy']:.3f} |")
     print(f"| steps labelled with the planted option | {accuracy:.1%} |")
-    save_options(result.options, "quickstart-options.pt")
-    load_options("quickstart-options.pt")
-    print("saved to quickstart-options.pt")
+    os.makedirs("outputs/quickstart", exist_ok=True)
+    save_options(result.options, "outputs/quickstart/options.pt")
+    load_options("outputs/quickstart/options.pt")
+    print("saved to outputs/quickstart/options.pt")
 
 
 if __name__ == "__main__":
