@@ -228,8 +228,11 @@ def _forward_backward_reference(
 
 # Chunked path: process at most this many bytes of transfer matrices ([rows, chunks, K, K] float64) at once.
 _CHUNKED_MAX_BYTES = 64 * 2**20
-# "auto" uses the reference below this many steps (the chunked path's fixed costs do not pay off).
+# "auto" uses the reference below this many steps (the chunked path's fixed costs do not pay off), and above this
+# many options (composing K x K chunk transfer matrices, O(T K^2) work, then costs more than the reference's T
+# sequential steps of O(K) work; measured crossover on 2 CPU cores at T = 1000: K between 16 and 32).
 _AUTO_MIN_STEPS = 16
+_AUTO_CHUNKED_MAX_K = 24
 # Largest K the Triton kernel handles (K is padded to a power of two held in registers).
 _TRITON_MAX_K = 128
 
@@ -297,7 +300,7 @@ def resolve_backend(backend: str, log_pi: Tensor) -> str:
     """The backend that ``forward_backward(..., backend=backend)`` runs for inputs like ``log_pi``.
 
     ``"auto"``: ``"triton"`` for CUDA tensors when Triton is available and ``K <= 128``; otherwise ``"chunked"``
-    when there are at least 16 steps; otherwise ``"reference"``. An explicit ``"triton"`` without CUDA and Triton
+    when there are at least 16 steps and at most 24 options; otherwise ``"reference"``. An explicit ``"triton"`` without CUDA and Triton
     raises a ``ValueError``.
     """
     if backend not in BACKENDS:
@@ -315,7 +318,7 @@ def resolve_backend(backend: str, log_pi: Tensor) -> str:
         return backend
     if log_pi.device.type == "cuda" and K <= _TRITON_MAX_K and triton_available(log_pi.device):
         return "triton"
-    return "chunked" if T >= _AUTO_MIN_STEPS else "reference"
+    return "chunked" if T >= _AUTO_MIN_STEPS and K <= _AUTO_CHUNKED_MAX_K else "reference"
 
 
 class _ForwardBackward(torch.autograd.Function):
@@ -393,8 +396,9 @@ def forward_backward(
             near-deterministic probabilities) are recomputed by the reference (about ``3 sqrt(T)`` sequential
             steps of O(K^2) work, computed in float64). ``"triton"``: a fused GPU kernel (CUDA and Triton), the
             time loop inside the kernel, one program per block of rows. ``"auto"`` (default): ``"triton"`` for
-            CUDA tensors when Triton is available and K <= 128, else ``"chunked"`` when T >= 16, else
-            ``"reference"`` (see :func:`resolve_backend`).
+            CUDA tensors when Triton is available and K <= 128, else ``"chunked"`` when T >= 16 and K <= 24
+            (above that, composing K x K transfer matrices costs more than it saves), else ``"reference"``
+            (see :func:`resolve_backend`).
 
     Returns:
         ForwardBackwardOutput: ``log_likelihood`` ``[B]`` and the detached marginals ``u``, ``v``, ``w``
