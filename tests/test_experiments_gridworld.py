@@ -1,0 +1,77 @@
+"""The GridWorld per-cell pipeline: batched-env DQN, checkpoint resume, cached discovery, greedy trajectories."""
+import torch
+
+from torchrl_options.envs import ValueIterationSupervisor
+from torchrl_options.experiments import Cell
+from torchrl_options.experiments.gridworld import (
+    cell_options,
+    discover_cached,
+    greedy_trajectories,
+    make_agent,
+    make_env,
+    train_episodes,
+)
+
+
+def _cfg(out_dir, **kw):
+    cfg = dict(
+        out_dir=str(out_dir),
+        env=dict(grid="two-rooms", task="goal", noise=0.3, max_steps=20, start="map", goal="map"),
+        num_envs=4,
+        demos=dict(num=3, length=60, env=dict(start="random", goal="random", max_steps=60)),
+        discovery=dict(num_options=2, num_iterations=2, batch_size=None, lr=0.01),
+        dqn=dict(hidden_sizes=[2], gamma=0.9, eps_init=0.2, eps_end=0.2, frames_per_batch=16, batch_size=16,
+                 learning_starts=16, updates_per_batch=1),
+        episodes=8,
+        checkpoint_every=4,
+        settings=dict(supervised=dict(source="supervisor")),
+        conditions=dict(A=dict(mode="actions"), AO=dict(mode="both", meta_control="uniform")),
+        logger=dict(backend=""),
+    )  # fmt: skip
+    cfg.update(kw)
+    return cfg
+
+
+def test_agent_runs_one_batched_env(tmp_path):
+    agent = make_agent(_cfg(tmp_path), "actions", seed=0)
+    assert agent.env.batch_size == torch.Size([4])  # the GridWorldEnv batch itself, no SerialEnv
+    returns, frames = train_episodes(agent, 6)
+    assert len(returns) == 6 and frames == sorted(frames)
+
+
+def test_train_episodes_resumes_from_checkpoint(tmp_path):
+    ckpt = tmp_path / "dqn.pt"
+    agent = make_agent(_cfg(tmp_path), "actions", seed=0)
+    first, _ = train_episodes(agent, 4, ckpt, checkpoint_every=4)
+    frames = agent.frames
+    resumed = make_agent(_cfg(tmp_path), "actions", seed=0)
+    returns, _ = train_episodes(resumed, 10, ckpt, checkpoint_every=4)
+    assert returns[:4] == first and len(returns) == 10
+    assert resumed.frames > frames  # continued, not restarted
+    state = torch.load(ckpt, weights_only=False)
+    assert len(state["log"]["episode_returns"]) >= 10 and "replay_buffer" in state
+
+
+def test_discovery_is_cached(tmp_path):
+    cfg = _cfg(tmp_path)
+    options = cell_options(cfg, Cell("supervised", "AO", 0))
+    assert options.num_options == 2
+    assert (tmp_path / "cells" / "supervised-seed0" / "options-K2-uniform.pt").exists()
+
+    def fail():
+        raise AssertionError("the cached options should be loaded, not rediscovered")
+
+    path = tmp_path / "cells" / "supervised-seed0" / "options-K2-uniform.pt"
+    again = discover_cached(fail, path, num_options=2, meta_control="uniform", seed=0, discovery=cfg["discovery"])
+    td = make_env(cfg["env"], 3, 0).reset()
+    assert torch.equal(options(td.clone())["option_logits"], again(td.clone())["option_logits"])
+    assert cell_options(cfg, Cell("supervised", "A", 0)) is None
+
+
+def test_greedy_trajectories_stop_at_the_goal():
+    env_cfg = dict(grid="two-rooms", task="goal", noise=0.0)
+    policy = ValueIterationSupervisor(make_env(env_cfg, 1, 0), seed=0)
+    data = greedy_trajectories(policy, env_cfg, num=4, length=60, seed=0)
+    mask = data["collector", "mask"]
+    reward = data["next", "reward"].squeeze(-1)
+    assert bool((reward * mask).sum(-1).eq(1).all())  # each row: one episode, ending at its goal

@@ -1,0 +1,458 @@
+"""The per-cell pipeline of the GridWorld recipes: trajectories, option discovery, DQN, returns per episode.
+
+Fox, Krishnan, Stoica, Goldberg, "Multi-Level Discovery of Deep Options" (2017): section 5.1 (four rooms,
+supervised and exploration settings) and appendix B (two rooms, three rooms). A cell is a (setting, condition,
+seed) triple (:class:`~torchrl_options.experiments.Cell`); :func:`run_gridworld_cell` turns one into its
+per-episode returns:
+
+- ``source: supervisor`` settings: demonstrations of the value-iteration supervisor, then DDO (one set of
+  options per seed and discovery settings, cached), then DQN over the condition's action space.
+- ``source: greedy`` settings (the exploration setting): DQN with actions only for ``pretrain_episodes``
+  (once per seed, cached and shared by the conditions), trajectories of its greedy policy, DDO, then a *reset*
+  DQN over the augmented action space. The baseline (``mode: actions``) is not reset: it continues the
+  pre-trained agent, as in the paper.
+
+Everything slow is checkpointed under ``<out_dir>/cells``: discovered options (:func:`save_options`), the
+pre-trained agent and its greedy trajectories, and every DQN every ``checkpoint_every`` episodes (networks,
+target, optimizer, epsilon, replay buffer and the returns so far), so a killed recipe resumes mid-cell.
+
+The configuration is a plain dict (the recipes pass their Hydra config as a container); see
+``recipes/config/four_rooms.yaml`` for every key and the reasons behind the defaults.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs.utils import step_mdp
+
+from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
+from torchrl_options.discovery import discover_options, load_options, save_options
+from torchrl_options.envs import GridWorldEnv, generate_demonstrations
+from torchrl_options.experiments.sweep import Cell, CellResult
+
+__all__ = [
+    "make_env",
+    "greedy_trajectories",
+    "discover_cached",
+    "train_episodes",
+    "run_gridworld_cell",
+    "cell_dir",
+    "reach_table",
+    "run_gridworld_recipe",
+    "write_option_pictures",
+]
+
+logger = logging.getLogger(__name__)
+
+
+class _EnoughEpisodes(Exception):
+    """Raised from the training callback to stop the collector once enough episodes have finished."""
+
+
+def _env_kwargs(env_cfg: Mapping[str, Any]) -> dict[str, Any]:
+    kwargs = {k: v for k, v in dict(env_cfg).items() if v is not None}
+    for key in ("start", "goal"):
+        if isinstance(kwargs.get(key), (list, tuple)):
+            kwargs[key] = tuple(int(v) for v in kwargs[key])
+    return kwargs
+
+
+def make_env(env_cfg: Mapping[str, Any], num_envs: int, seed: int) -> GridWorldEnv:
+    """A natively batched :class:`GridWorldEnv` of ``num_envs`` grids from an ``env`` config section.
+
+    Examples:
+        >>> env = make_env({"grid": "two-rooms", "task": "goal", "max_steps": 20, "start": None}, 4, seed=0)
+        >>> env.batch_size, env.max_steps
+        (torch.Size([4]), 20)
+    """
+    return GridWorldEnv(**_env_kwargs(env_cfg), batch_size=[num_envs], seed=seed)
+
+
+def cell_dir(out_dir: str | os.PathLike, *parts: str) -> Path:
+    """``<out_dir>/cells/<parts...>``, created."""
+    path = Path(out_dir, "cells", *parts)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+# ------------------------------------------------------------------------------------------------ trajectories
+@torch.no_grad()
+def greedy_trajectories(
+    policy: Callable, env_cfg: Mapping[str, Any], num: int, length: int, seed: int
+) -> TensorDict:
+    """``num`` trajectories of ``policy`` (run greedily), one episode per row, padded with a mask.
+
+    Rows stop at their first episode end (or after ``length`` steps; the batch stops once every row has ended);
+    ``("collector", "mask")`` marks the valid steps, as in :func:`~torchrl_options.envs.generate_demonstrations`.
+
+    Examples:
+        >>> from torchrl_options.envs import ValueIterationSupervisor
+        >>> env_cfg = {"grid": "two-rooms", "task": "goal"}
+        >>> policy = ValueIterationSupervisor(make_env(env_cfg, 1, 0), seed=0)
+        >>> data = greedy_trajectories(policy, env_cfg, num=3, length=60, seed=0)
+        >>> data.shape[0], data.shape[1] <= 60, bool(data["collector", "mask"][:, 0].all())
+        (3, True, True)
+    """
+    env = make_env({**dict(env_cfg), "max_steps": length}, num, seed)
+    steps, finished = [], torch.zeros(num, dtype=torch.bool)
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(length):
+            td = env.step(policy(td))
+            steps.append(td.exclude("action_value", "chosen_action_value"))
+            finished |= td.get(("next", "done")).reshape(num)
+            if finished.all():
+                break
+            td = step_mdp(td, keep_other=False, exclude_action=True)
+    data = torch.stack(steps, dim=1)
+    done = data.get(("next", "done")).reshape(num, -1).long()
+    valid = (done.cumsum(-1) - done) == 0
+    data.set(("collector", "mask"), valid)
+    return data
+
+
+def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
+    """Demonstrations of the value-iteration supervisor, per the ``demos`` section."""
+    demos = cfg["demos"]
+    env_kwargs = _env_kwargs({**dict(cfg["env"]), **dict(demos.get("env") or {})})
+    env_kwargs.pop("max_steps", None)
+    grid = env_kwargs.pop("grid")
+    return generate_demonstrations(
+        grid, num_trajectories=demos["num"], length=demos["length"], seed=1000 * seed + 17, **env_kwargs
+    )
+
+
+# ------------------------------------------------------------------------------------------------ discovery
+def discover_cached(
+    trajectories: TensorDict | Callable[[], TensorDict],
+    path: str | os.PathLike,
+    *,
+    num_options: int,
+    meta_control: str,
+    seed: int,
+    discovery: Mapping[str, Any],
+    progress: bool = False,
+):
+    """DDO options, loaded from ``path`` when it exists, else discovered and saved there.
+
+    ``trajectories`` may be a callable, so that a resumed run does not even regenerate them.
+    """
+    path = Path(path)
+    if path.exists():
+        logger.info("options: loading %s", path)
+        return load_options(path)
+    data = trajectories() if callable(trajectories) else trajectories
+    result = discover_options(
+        data,
+        num_options,
+        meta_control=meta_control,
+        num_actions=4,
+        num_cells=discovery.get("num_cells", 2),
+        activation=discovery.get("activation", "tanh"),
+        init=discovery.get("init", "random"),
+        num_iterations=discovery["num_iterations"],
+        batch_size=discovery.get("batch_size"),
+        lr=discovery.get("lr", 1e-2),
+        seed=seed,
+        progress=progress,
+        return_info=True,
+    )
+    final = result.history[-1] if result.history else {}
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    save_options(
+        result.options, tmp, meta_control=result.meta_control,
+        metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed, "final": final},
+    )  # fmt: skip
+    os.replace(tmp, path)
+    return result.options
+
+
+# ---------------------------------------------------------------------------------------------------- DQN
+def _dqn_config(cfg: Mapping[str, Any], mode: str, seed: int) -> OptionsDQNConfig:
+    dqn = dict(cfg["dqn"])
+    dqn["hidden_sizes"] = tuple(dqn.get("hidden_sizes", (2,)))
+    # one natively batched env: OptionsDQN's num_envs=1 calls the factory once and does not wrap it
+    return OptionsDQNConfig(mode=mode, num_envs=1, seed=seed, **dqn)
+
+
+def make_agent(
+    cfg: Mapping[str, Any], mode: str, seed: int, options=None, num_options: int | None = None
+) -> OptionsDQN:
+    """An :class:`OptionsDQN` on ``cfg["num_envs"]`` batched grids (a ``GridWorldEnv(batch_size=[N])``)."""
+    env_cfg, num_envs = dict(cfg["env"]), int(cfg["num_envs"])
+    env_seed = 1000 * seed + 101
+
+    def factory() -> GridWorldEnv:
+        return make_env(env_cfg, num_envs, env_seed)
+
+    return OptionsDQN(factory, _dqn_config(cfg, mode, seed), options=options, num_options=num_options)
+
+
+def train_episodes(
+    agent: OptionsDQN,
+    num_episodes: int,
+    checkpoint: str | os.PathLike | None = None,
+    *,
+    checkpoint_every: int = 100,
+    include_buffer: bool = True,
+    progress: bool = False,
+    desc: str = "DQN",
+    on_episodes: Callable[[list[float], int], None] | None = None,
+) -> tuple[list[float], list[int]]:
+    """Trains ``agent`` until ``num_episodes`` episodes (counted over the batched envs) have finished.
+
+    Resumes from ``checkpoint`` when it exists and saves it every ``checkpoint_every`` episodes (and at the
+    end). ``on_episodes(new_returns, first_index)`` is called with each chunk's new returns (for loggers).
+
+    Returns:
+        The first ``num_episodes`` returns and the frames at which each ended.
+    """
+    checkpoint = None if checkpoint is None else Path(checkpoint)
+    if checkpoint is not None and checkpoint.exists():
+        agent.load_state_dict(torch.load(checkpoint, weights_only=False))
+        logger.info("%s: resumed from %s at %d episodes", desc, checkpoint, len(agent.log.episode_returns))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=num_episodes, desc=desc, unit="ep", leave=False)
+        bar.update(min(len(agent.log.episode_returns), num_episodes))
+    reported = len(agent.log.episode_returns)
+    while len(agent.log.episode_returns) < num_episodes:
+        target = min(len(agent.log.episode_returns) + checkpoint_every, num_episodes)
+
+        def stop(agent_: OptionsDQN, _batch) -> None:
+            if bar is not None:
+                bar.update(min(len(agent_.log.episode_returns), num_episodes) - bar.n)
+                recent = agent_.log.episode_returns[-50:]
+                if recent:
+                    bar.set_postfix(ret=f"{sum(recent) / len(recent):.2f}")
+            if len(agent_.log.episode_returns) >= target:
+                raise _EnoughEpisodes
+
+        try:
+            # the budget is only a bound: the callback stops at the target number of episodes
+            agent.train(total_frames=10**12, callback=stop)
+        except _EnoughEpisodes:
+            pass
+        if checkpoint is not None:
+            _atomic_save(agent.state_dict(include_buffer=include_buffer), checkpoint)
+        if on_episodes is not None:
+            on_episodes(agent.log.episode_returns[reported:num_episodes], reported)
+        reported = min(len(agent.log.episode_returns), num_episodes)
+    if bar is not None:
+        bar.close()
+    return agent.log.episode_returns[:num_episodes], agent.log.episode_end_frames[:num_episodes]
+
+
+# ---------------------------------------------------------------------------------------------- the cell
+def _cell_logger(cfg: Mapping[str, Any], cell: Cell):
+    log_cfg = dict(cfg.get("logger") or {})
+    backend = log_cfg.get("backend", "csv")
+    if not backend:
+        return None
+    from torchrl.record.loggers import get_logger
+
+    name = f"{log_cfg.get('exp_name', 'gridworld')}-{cell.name}"
+    kwargs = {}
+    if backend == "wandb":
+        kwargs = {"project": log_cfg.get("project_name", "torchrl-options"), "offline": log_cfg.get("offline", True)}
+    return get_logger(backend, logger_name=str(Path(cfg["out_dir"], "logs")), experiment_name=name, **kwargs)
+
+
+def _pretrained_agent(cfg: Mapping[str, Any], setting: str, seed: int, progress: bool) -> tuple[OptionsDQN, Path]:
+    """The actions-only agent after ``pretrain_episodes`` (shared by the conditions of a seed)."""
+    path = cell_dir(cfg["out_dir"], f"{setting}-seed{seed}") / "pretrain.pt"
+    agent = make_agent(cfg, "actions", seed)
+    train_episodes(
+        agent, int(cfg["settings"][setting]["pretrain_episodes"]), path,
+        checkpoint_every=int(cfg["checkpoint_every"]), progress=progress, desc=f"{setting} pretrain s{seed}",
+    )  # fmt: skip
+    return agent, path
+
+
+def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
+    """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache."""
+    condition = cfg["conditions"][cell.condition]
+    if condition["mode"] == "actions":
+        return None
+    setting = cfg["settings"][cell.setting]
+    discovery = dict(cfg["discovery"])
+    num_options = int(condition.get("num_options", discovery["num_options"]))
+    meta = condition.get("meta_control", "uniform")
+    name = f"options-K{num_options}-{meta}.pt"
+    path = cell_dir(cfg["out_dir"], f"{cell.setting}-seed{cell.seed}") / name
+    if setting["source"] == "supervisor":
+        source = lambda: _trajectories(cfg, cell.seed)  # noqa: E731
+    elif setting["source"] == "greedy":
+
+        def source() -> TensorDict:
+            traj_path = path.with_name("greedy_trajectories.pt")
+            if traj_path.exists():
+                return torch.load(traj_path, weights_only=False)
+            agent, _ = _pretrained_agent(cfg, cell.setting, cell.seed, progress)
+            greedy = dict(setting["greedy"])
+            data = greedy_trajectories(agent.actor, cfg["env"], greedy["num"], greedy["length"], 1000 * cell.seed + 7)
+            _atomic_save(data, traj_path)
+            return data
+
+    else:
+        raise ValueError(f"setting source must be 'supervisor' or 'greedy', got {setting['source']!r}.")
+    return discover_cached(
+        source, path, num_options=num_options, meta_control=meta, seed=cell.seed, discovery=discovery,
+        progress=progress,
+    )  # fmt: skip
+
+
+def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
+    """Runs one (setting, condition, seed) cell and returns its per-episode returns (resumable).
+
+    ``cfg`` keys: ``out_dir``, ``env`` (GridWorldEnv arguments), ``num_envs``, ``demos`` (``num``, ``length``,
+    ``env`` overrides), ``discovery`` (DDO settings), ``dqn`` (:class:`OptionsDQNConfig` fields), ``episodes``,
+    ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
+    ``greedy: {num, length}``), ``conditions`` (per condition: ``mode`` and ``meta_control``), ``logger``
+    and ``progress``.
+    """
+    cfg = dict(cfg)
+    progress = bool(cfg.get("progress", False))
+    torch.manual_seed(cell.seed)
+    setting = cfg["settings"][cell.setting]
+    condition = cfg["conditions"][cell.condition]
+    mode = condition["mode"]
+    ckpt = cell_dir(cfg["out_dir"], cell.name) / "dqn.pt"
+    options = cell_options(cfg, cell, progress=progress)
+    if mode == "actions" and setting["source"] == "greedy":
+        # the baseline is not reset: it continues the pre-trained agent
+        agent, pre_path = _pretrained_agent(cfg, cell.setting, cell.seed, progress)
+        if not ckpt.exists():
+            agent.log.episode_returns.clear()
+            agent.log.episode_lengths.clear()
+            agent.log.episode_end_frames.clear()
+    else:
+        num_options = None if options is None else int(options.num_options)
+        agent = make_agent(cfg, mode, cell.seed, options=options, num_options=num_options)
+    exp_logger = _cell_logger(cfg, cell)
+
+    def log_returns(returns: list[float], first: int) -> None:
+        if exp_logger is not None:
+            for i, r in enumerate(returns):
+                exp_logger.log_scalar("episode_return", float(r), step=first + i)
+
+    returns, frames = train_episodes(
+        agent, int(cfg["episodes"]), ckpt, checkpoint_every=int(cfg["checkpoint_every"]), progress=progress,
+        desc=cell.name, on_episodes=log_returns,
+    )  # fmt: skip
+    with open(Path(cfg["out_dir"], "cells", "ran.txt"), "a") as f:
+        f.write(cell.name + "\n")
+    return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames])
+
+
+# --------------------------------------------------------------------------------------------- the recipe
+def reach_table(log, target: float, window: int) -> str:
+    """Markdown: per setting and condition, the episodes each seed needs for its ``window``-episode mean
+    return to reach ``target`` (e.g. the two-rooms convergence of appendix B: a return of 1.0), with a 95%
+    bootstrap interval over seeds; seeds that never reach it count with all their episodes."""
+    from torchrl_options.experiments.results import bootstrap_ci, episodes_to_reach
+
+    lines = [
+        f"| setting | condition | episodes to a {window}-episode mean return of {target:g} [95% CI] | seeds that reach it |",
+        "|---|---|---|---|",
+    ]
+    for setting, condition in log.settings_and_conditions():
+        counts, reached = [], 0
+        runs = log.returns(setting, condition)
+        for returns in runs.values():
+            n = episodes_to_reach(returns, target, window)
+            reached += n is not None
+            counts.append(len(returns) if n is None else n)
+        m, lo, hi = bootstrap_ci(counts)
+        lines.append(f"| {setting} | {condition} | {m:.0f} [{lo:.0f}, {hi:.0f}] | {reached}/{len(runs)} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
+    """What every GridWorld recipe does: the sweep over (setting, condition, seed), then the outputs.
+
+    Writes ``results.csv``, ``summary.md``, ``curves.png`` and ``pictures/*.png`` (the discovered options of
+    the first seed) to ``cfg["out_dir"]``; returns the summary (``None`` when stopped early by
+    ``stop_after_cells``, which the tests use to interrupt a run).
+    """
+    import functools
+
+    from torchrl_options.experiments.plotting import plot_curves
+    from torchrl_options.experiments.results import ResultsLog, summarize, summary_markdown
+    from torchrl_options.experiments.sweep import run_sweep
+
+    cfg = dict(cfg)
+    out = Path(cfg["out_dir"])
+    out.mkdir(parents=True, exist_ok=True)
+    log = ResultsLog(out / "results.csv")
+    seeds = list(range(int(cfg["seeds"]))) if isinstance(cfg["seeds"], int) else list(cfg["seeds"])
+    cells = [Cell(s, c, seed) for s in cfg["settings_to_run"] for c in cfg["conditions_to_run"] for seed in seeds]
+    done = log.done_cells()
+    todo = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
+    stop = cfg.get("stop_after_cells")
+    stopped = stop is not None and len(todo) > int(stop)
+    if stopped:
+        todo = todo[: int(stop)]
+    bar = None
+    if cfg.get("progress", False) and cfg.get("backend", "serial") != "serial":
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(todo), desc=title, unit="cell")
+    run_sweep(
+        functools.partial(run_gridworld_cell, cfg=cfg), todo, log, backend=cfg.get("backend", "serial"),
+        num_workers=cfg.get("num_workers"), ray_address=cfg.get("ray_address"),
+        on_result=(lambda cell, result: bar.update(1)) if bar is not None else None,
+    )  # fmt: skip
+    if bar is not None:
+        bar.close()
+    if stopped:
+        logger.warning("stopped after %d cells (stop_after_cells); run again to resume.", int(stop))
+        return None
+
+    summary_cfg = dict(cfg.get("summary") or {})
+    final_window = int(summary_cfg.get("final_window", 100))
+    summaries = summarize(log, final_window=final_window, smooth_window=int(summary_cfg.get("smooth_window", 100)))
+    text = f"# {title}\n\n" + summary_markdown(summaries, final_window=final_window)
+    if summary_cfg.get("reach_return") is not None:
+        text += "\n" + reach_table(log, float(summary_cfg["reach_return"]), int(summary_cfg.get("reach_window", 10)))
+    (out / "summary.md").write_text(text)
+    plot_curves(log, out / "curves.png", smooth_window=int(summary_cfg.get("curve_window", 50)), title=title)
+    write_option_pictures(cfg, min(seeds))
+    return text
+
+
+def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
+    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6)."""
+    from torchrl_options.experiments.option_pictures import draw_options
+
+    pictures_cfg = dict(cfg.get("pictures") or {})
+    out = Path(cfg["out_dir"], "pictures")
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for setting in cfg["settings_to_run"]:
+        folder = Path(cfg["out_dir"], "cells", f"{setting}-seed{seed}")
+        for path in sorted(folder.glob("options-*.pt")):
+            target = Path(out, f"{setting}-seed{seed}-{path.stem.removeprefix('options-')}.png")
+            draw_options(
+                load_options(path), cfg["env"], target, target_pos=pictures_cfg.get("target"),
+                num_starts=int(pictures_cfg.get("num_starts", 3)), max_length=int(pictures_cfg.get("max_length", 30)),
+                seed=seed,
+            )  # fmt: skip
+            written.append(target)
+    return written
