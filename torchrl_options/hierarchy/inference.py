@@ -1,0 +1,559 @@
+"""Exact inference for a level of options over fixed lower levels (call-and-return), linear in T.
+
+Reference: R. Fox, S. Krishnan, I. Stoica, K. Goldberg, "Multi-Level Discovery of Deep Options",
+arXiv:1703.08294 (2017), sections 3.4 and 4.3 and appendix A.
+
+The model. Levels are numbered ``1 .. D`` bottom-up; level ``D`` is the one being discovered and levels
+``1 .. D-1`` are fixed. A level-``j`` option chooses among the augmented action space of size
+``N_j = A + K_1 + ... + K_{j-1}``: index ``a < A`` is a primitive action and index ``A + K_1 + ... + K_{i-1} + k``
+invokes option ``k`` of level ``i < j`` (the layout of nested :class:`~torchrl_options.transforms.OptionExecutor`
+spaces). The state at step ``t`` is a *call stack*: the active level-``D`` option, the child it invoked, that
+child's child, ... down to the option that chose the primitive action ``a_t``. After the step the primitive
+returns; an option whose child returned terminates with ``psi(s_{t+1})`` (returning to its caller) or picks a
+new child with its control policy at ``s_{t+1}``; when the level-``D`` option terminates the meta-control
+``eta(. | s_{t+1})`` picks the next one (``b_0 = 1``: it also picks the first). So an option never terminates
+while a child it invoked is running.
+
+The forward recursion is exact and costs O(S) per step, with S the number of stack shapes (``K_2 (1 + K_1)`` for
+two levels): pop masses flow up the stack (sums over children), push masses flow down (products along paths).
+Messages are normalised in log space every step. The gradient of the log-likelihood, by autograd, is the
+Expectation-Gradient (posterior expected counts of every choice and termination event), and the posterior
+marginals are gradients with respect to zero biases on the stack states.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import itertools
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "BACKENDS",
+    "HierarchyPosterior",
+    "hierarchical_forward_backward",
+    "stack_shapes",
+]
+
+
+BACKENDS = ("auto", "dense", "structured")
+
+
+@dataclass
+class HierarchyPosterior:
+    """The result of :func:`hierarchical_forward_backward`.
+
+    Lists are indexed by level, bottom-up (``[0]`` is level 1, ``[-1]`` the top level D).
+
+    Attributes:
+        log_likelihood (Tensor): ``[B]``, ``log P(xi)`` up to the dynamics terms. Differentiable when the inputs
+            are; its gradient is the Expectation-Gradient.
+        u (list of Tensor, optional): ``[B, T, K_j]``, ``P(option k of level j is on the call stack at step t | xi)``.
+            At the top level the rows sum to 1; below, the missing mass is the probability that no level-``j``
+            option runs at that step (a higher option chose a primitive or a lower-level option directly).
+        v (list of Tensor, optional): ``[B, T, K_j]``, ``P(option k of level j is invoked at step t | xi)``.
+        emitter (Tensor, optional): ``[B, T, D]``, ``P(the primitive a_t was chosen by a level-j option | xi)``.
+
+    Marginals are detached, ``None`` unless asked for, and zero on padding.
+    """
+
+    log_likelihood: Tensor
+    u: list[Tensor] | None = None
+    v: list[Tensor] | None = None
+    emitter: Tensor | None = None
+
+    def most_likely(self, level: int) -> Tensor:
+        """``[B, T]``: the most likely option of ``level`` (1-based) at each step, ``-1`` on padding."""
+        if self.u is None:
+            raise ValueError("most_likely needs the marginals: call hierarchical_forward_backward(..., marginals=True).")
+        u = self.u[level - 1]
+        return torch.where(u.sum(-1) > 0, u.argmax(-1), -1)
+
+
+def stack_shapes(num_levels: int) -> list[tuple[int, ...]]:
+    """The call-stack shapes of a hierarchy of ``num_levels`` levels: tuples of 0-based levels from the top down,
+    strictly decreasing, starting with the top level. Sorted by length (callers before callees).
+
+    Examples:
+        >>> stack_shapes(3)
+        [(2,), (2, 0), (2, 1), (2, 1, 0)]
+    """
+    top = num_levels - 1
+    shapes = [(top,)]
+    frontier = [(top,)]
+    while frontier:
+        nxt = [s + (i,) for s in frontier for i in range(s[-1])]
+        shapes += nxt
+        frontier = nxt
+    return sorted(shapes, key=lambda s: (len(s), s))
+
+
+def _check_inputs(action, log_pi, log_term, log_cont, log_eta, mask, terminal):
+    if not isinstance(log_pi, Sequence) or isinstance(log_pi, Tensor) or len(log_pi) == 0:
+        raise ValueError("log_pi must be a non-empty list of [B, T, K_j, N_j] tensors, one per level (bottom-up).")
+    D = len(log_pi)
+    for name, seq in (("log_term", log_term), ("log_cont", log_cont)):
+        if not isinstance(seq, Sequence) or isinstance(seq, Tensor) or len(seq) != D:
+            raise ValueError(f"{name} must be a list of {D} [B, T, K_j] tensors (one per level, like log_pi).")
+    x0 = log_pi[0]
+    if not isinstance(x0, Tensor) or x0.ndim != 4 or not x0.is_floating_point():
+        raise ValueError(f"log_pi[0] must be a floating point [B, T, K_1, A] tensor, got {_describe(x0)}.")
+    B, T, _, A = x0.shape
+    if B == 0 or T == 0 or A == 0:
+        raise ValueError(f"log_pi[0] has shape {tuple(x0.shape)}: empty batch, trajectory or action space.")
+    sizes = []
+    n = A
+    for j in range(D):
+        x = log_pi[j]
+        if not isinstance(x, Tensor) or x.ndim != 4 or x.shape[:2] != (B, T) or x.shape[2] == 0:
+            raise ValueError(f"log_pi[{j}] (level {j + 1}) must be a [B, T, K_{j + 1}, N] tensor with [B, T] = "
+                             f"{[B, T]}, got {_describe(x)}.")
+        if x.shape[3] != n:
+            parts = " + ".join(["A"] + [f"K_{i + 1}" for i in range(j)])
+            values = " + ".join(str(v) for v in [A] + sizes)
+            raise ValueError(
+                f"log_pi[{j}] (level {j + 1}) has {x.shape[3]} actions in its last dimension, but a level-{j + 1} "
+                f"option chooses among {parts} = {values} = {n} (primitive actions and the options of the lower "
+                "levels)."
+            )
+        if x.dtype != x0.dtype or x.device != x0.device:
+            raise ValueError(f"log_pi[{j}] has dtype/device {x.dtype}/{x.device}, log_pi[0] {x0.dtype}/{x0.device}.")
+        K = x.shape[2]
+        for name, seq in (("log_term", log_term), ("log_cont", log_cont)):
+            y = seq[j]
+            if not isinstance(y, Tensor) or y.shape != (B, T, K) or y.dtype != x0.dtype:
+                raise ValueError(
+                    f"{name}[{j}] (level {j + 1}) must be a {x0.dtype} tensor of shape [B, T, K_{j + 1}] = "
+                    f"{[B, T, K]}, got {_describe(y)}."
+                )
+        sizes.append(K)
+        n += K
+    if not isinstance(log_eta, Tensor) or log_eta.shape != (B, T, sizes[-1]) or log_eta.dtype != x0.dtype:
+        raise ValueError(
+            f"log_eta must be a {x0.dtype} tensor of shape [B, T, K_D] = {[B, T, sizes[-1]]} (the meta-control "
+            f"over the top level's options), got {_describe(log_eta)}."
+        )
+    if not isinstance(action, Tensor) or action.shape != (B, T) or action.is_floating_point():
+        raise ValueError(f"action must be an integer tensor of shape [B, T] = {[B, T]}, got {_describe(action)}.")
+    if mask is None:
+        mask = torch.ones(B, T, dtype=torch.bool, device=x0.device)
+    else:
+        if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape != (B, T):
+            raise ValueError(f"mask must be a bool tensor of shape [B, T] = {[B, T]}, got {_describe(mask)}.")
+        if not mask[:, 0].all() or (mask[:, 1:] & ~mask[:, :-1]).any():
+            raise ValueError("mask must mark a non-empty prefix of each row as valid (padding at the end only).")
+        mask = mask.to(x0.device)
+    bad = ((action < 0) | (action >= A)) & mask
+    if bad.any():
+        raise ValueError(
+            f"action holds {int(action[bad][0])}, outside the primitive actions [0, {A}) (A from log_pi[0]): "
+            "demonstrations must record primitive actions."
+        )
+    if isinstance(terminal, bool):
+        terminal = torch.full((B,), terminal, dtype=torch.bool, device=x0.device)
+    elif isinstance(terminal, Tensor) and terminal.dtype == torch.bool and terminal.shape in ((), (B,)):
+        terminal = terminal.to(x0.device).expand(B)
+    else:
+        raise ValueError(f"terminal must be a bool or a bool tensor of shape [B] = [{B}], got {_describe(terminal)}.")
+    valid = mask.view(B, T, 1)
+    for name, seq in (("log_pi", log_pi), ("log_term", log_term), ("log_cont", log_cont), ("log_eta", [log_eta])):
+        for j, y in enumerate(seq):
+            v = valid.view(B, T, *([1] * (y.ndim - 2)))
+            if ((torch.isnan(y) | (y == float("inf"))) & v).any():
+                raise ValueError(f"{name}[{j}] contains NaN or +inf at a valid step: log-probabilities must be finite or -inf.")
+    return A, sizes, mask, terminal
+
+
+def _describe(x) -> str:
+    if isinstance(x, Tensor):
+        return f"a {x.dtype} tensor of shape {tuple(x.shape)}"
+    return type(x).__name__
+
+
+def _safe_logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``logsumexp`` whose gradient stays finite (zero) on groups that are all ``-inf``.
+
+    ``torch.logsumexp`` back-propagates ``exp(-inf - (-inf)) = NaN`` there; such groups (stacks that no option
+    can reach) only appear when some log-probabilities are exactly ``-inf``.
+    """
+    m = x.detach().amax(dim, keepdim=True)
+    m = torch.where(torch.isfinite(m), m, torch.zeros((), dtype=x.dtype, device=x.device))
+    s = (x - m).exp().sum(dim)
+    m = m.squeeze(dim)
+    pos = s > 0
+    out = m + torch.where(pos, s, torch.ones((), dtype=s.dtype, device=s.device)).log()
+    return torch.where(pos, out, torch.full((), -float("inf"), dtype=x.dtype, device=x.device))
+
+
+def _fast_logsumexp(x: Tensor, dim: int) -> Tensor:
+    return x.logsumexp(dim)
+
+
+def hierarchical_forward_backward(
+    action: Tensor,
+    log_pi: Sequence[Tensor],
+    log_term: Sequence[Tensor],
+    log_cont: Sequence[Tensor],
+    log_eta: Tensor,
+    mask: Tensor | None = None,
+    terminal: bool | Tensor = False,
+    *,
+    marginals: bool = False,
+    validate: bool = True,
+    backend: str = "auto",
+) -> HierarchyPosterior:
+    r"""Exact log-likelihood (and posterior marginals) of demonstrations under a hierarchy of options.
+
+    The top level ``D`` is driven by the meta-control ``eta``; the levels below run call-and-return (see the
+    module docstring; Fox et al., 2017, sections 3.4 and 4.3). With one level this is the model of
+    :func:`~torchrl_options.forward_backward` and gives the same likelihood.
+
+    Per step the forward message is a distribution over call stacks (``(h_D, c_1, c_2, ...)``, the top option
+    and the chain of options below it, the last of which chose ``a_t``). Its update is a pop pass,
+
+    .. math::
+        M(n) = \alpha_t(n) + \sum_{c \text{ child of } n} \psi_c(s_{t+1}) M(c),
+
+    the mass returned to the option at the bottom of stack ``n`` (its primitive returned, or its child option
+    terminated), then a push pass,
+
+    .. math::
+        P(n) = (1 - \psi_n(s_{t+1})) M(n) + P(\text{parent}(n))\,\pi_{\text{parent}(n)}(n | s_{t+1}),
+
+    with ``P(root) = sum_h psi_h M(h)`` spread by ``eta(h | s_{t+1})``, and
+    ``alpha_{t+1}(n) = P(n) pi_n(a_{t+1} | s_{t+1})``. Both passes are sums over the tree of stack shapes: O(S)
+    per step, T sequential steps. Everything is in normalised log space; the gradient comes from autograd
+    (the Expectation-Gradient identity holds for any exact forward pass).
+
+    Args:
+        action (Tensor): ``[B, T]`` long, the primitive actions taken, in ``[0, A)``.
+        log_pi (list of Tensor): per level, bottom-up, ``[B, T, K_j, N_j]``: ``log pi_h(c | s_t)`` of each level-j
+            option over its augmented action space ``N_j = A + K_1 + ... + K_{j-1}`` (``N_1 = A``).
+        log_term (list of Tensor): per level, ``[B, T, K_j]``: ``log psi_h(s_{t+1})``.
+        log_cont (list of Tensor): per level, ``[B, T, K_j]``: ``log(1 - psi_h(s_{t+1}))``.
+        log_eta (Tensor): ``[B, T, K_D]``: ``log eta(h | s_t)`` over the top level's options.
+        mask (Tensor, optional): ``[B, T]`` bool, a non-empty prefix of each row. Padding may hold anything.
+        terminal (bool or Tensor): ``[B]``: the trajectory ends with its top option terminating (which needs
+            every option on the stack to terminate at ``s_T``).
+
+    Keyword Args:
+        marginals (bool): also return ``u``, ``v`` and ``emitter`` (one extra backward pass through the
+            recursion). Defaults to ``False``.
+        validate (bool): check the inputs and raise a ``ValueError`` naming the argument. Defaults to ``True``.
+        backend (str): ``"dense"``: the S x S transition matrices of all steps built at once (O(S^2 D) memory per
+            step), then one log-space matrix-vector product per step: few, larger operations, the faster on
+            small hierarchies. ``"structured"``: the pop/push passes over the tree of stack shapes, O(S) per step
+            in more, smaller operations, the faster on larger batches. ``"auto"`` (default): dense when
+            ``B S^2 (D + 1) <= 2^13`` (and its transition tensor stays below 2^25 elements), else structured. Both
+            are exact and give the same results.
+
+    Returns:
+        HierarchyPosterior
+
+    Raises:
+        ValueError: for inconsistent shapes (``log_pi[j]``'s last dimension must be ``A + K_1 + ... + K_{j-1}``),
+            bad masks or actions, or a trajectory of zero likelihood.
+
+    Examples:
+        >>> import torch
+        >>> B, T, A, K1, K2 = 2, 6, 3, 2, 2
+        >>> lp = lambda *s: torch.randn(*s).log_softmax(-1)
+        >>> ls = lambda *s: torch.nn.functional.logsigmoid(torch.randn(*s))
+        >>> action = torch.randint(A, (B, T))
+        >>> out = hierarchical_forward_backward(
+        ...     action, [lp(B, T, K1, A), lp(B, T, K2, A + K1)], [ls(B, T, K1), ls(B, T, K2)],
+        ...     [ls(B, T, K1), ls(B, T, K2)], lp(B, T, K2), marginals=True)
+        >>> out.log_likelihood.shape, out.u[1].shape, out.emitter.shape
+        (torch.Size([2]), torch.Size([2, 6, 2]), torch.Size([2, 6, 2]))
+        >>> torch.allclose(out.u[1].sum(-1), torch.ones(B, T))
+        True
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")
+    if validate:
+        A, sizes, mask, terminal = _check_inputs(action, log_pi, log_term, log_cont, log_eta, mask, terminal)
+    else:
+        A = log_pi[0].shape[-1]
+        sizes = [x.shape[2] for x in log_pi]
+        B, T = action.shape
+        if mask is None:
+            mask = torch.ones(B, T, dtype=torch.bool, device=action.device)
+        if isinstance(terminal, bool):
+            terminal = torch.full((B,), terminal, dtype=torch.bool, device=action.device)
+        terminal = terminal.expand(B)
+    if not marginals:
+        ll = _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, None, None, backend)
+        _check_finite(ll)
+        return HierarchyPosterior(ll)
+
+    shapes = stack_shapes(len(sizes))
+    B, T = action.shape
+    dtype, device = log_eta.dtype, log_eta.device
+    with torch.enable_grad():
+        node_bias = {s: torch.zeros(B, T, *[sizes[i] for i in s], dtype=dtype, device=device, requires_grad=True)
+                     for s in shapes}
+        start_bias = {s: torch.zeros_like(node_bias[s], requires_grad=True) for s in shapes}
+        ll = _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias,
+                      backend)
+        _check_finite(ll)
+        leaves = [node_bias[s] for s in shapes] + [start_bias[s] for s in shapes]
+        grads = torch.autograd.grad(ll.sum(), leaves, retain_graph=ll.requires_grad)
+    node = dict(zip(shapes, grads[: len(shapes)]))
+    start = dict(zip(shapes, grads[len(shapes):]))
+    D = len(sizes)
+    u = [torch.zeros(B, T, K, dtype=dtype, device=device) for K in sizes]
+    v = [torch.zeros(B, T, K, dtype=dtype, device=device) for K in sizes]
+    emitter = torch.zeros(B, T, D, dtype=dtype, device=device)
+    for s in shapes:
+        g = node[s]
+        for pos, level in enumerate(s):
+            other = [2 + p for p in range(len(s)) if p != pos]
+            u[level] += g.sum(other) if other else g
+        last = 2 + len(s) - 1
+        v[s[-1]] += start[s].sum(list(range(2, last))) if last > 2 else start[s]
+        emitter[:, :, s[-1]] += g.flatten(2).sum(-1)
+    if not any(x.requires_grad for x in [*log_pi, *log_term, *log_cont, log_eta]):
+        ll = ll.detach()
+    return HierarchyPosterior(ll, [x.detach() for x in u], [x.detach() for x in v], emitter.detach())
+
+
+def _check_finite(ll: Tensor) -> None:
+    if not torch.isfinite(ll).all():
+        rows = (~torch.isfinite(ll)).nonzero().flatten().tolist()
+        raise ValueError(
+            f"trajectories {rows[:10]} have zero likelihood: at some step no call stack of the hierarchy can "
+            "produce the action taken."
+        )
+
+
+def _nodes(sizes: list[int]) -> list[tuple[tuple[int, int], ...]]:
+    """Every call stack, as ((level, option), ...) from the top, in the order of the flattened stack shapes."""
+    nodes = []
+    for s in stack_shapes(len(sizes)):
+        for idx in itertools.product(*[range(sizes[lv]) for lv in s]):
+            nodes.append(tuple(zip(s, idx)))
+    return nodes
+
+
+# "auto" picks the dense recursion for small batches (per-step work below this many elements), where its fewer
+# operations per step win, as long as its transition tensor stays below _DENSE_MAX_ELEMENTS.
+_DENSE_MAX_STEP_ELEMENTS = 2**13
+_DENSE_MAX_ELEMENTS = 2**25
+
+
+def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, backend):
+    B, T = action.shape
+
+    # Padding may hold anything: zeros keep NaN out of the forward pass and of its gradient.
+    def clean(x: Tensor) -> Tensor:
+        return torch.where(mask.view(B, T, *([1] * (x.ndim - 2))), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+    log_pi = [clean(x) for x in log_pi]
+    log_term = [clean(x) for x in log_term]
+    log_cont = [clean(x) for x in log_cont]
+    log_eta = clean(log_eta)
+    # -inf entries (impossible choices) need the NaN-free logsumexp; finite inputs take the fused one
+    inputs = [*log_pi, *log_term, *log_cont, log_eta]
+    lse = _fast_logsumexp if all(bool(torch.isfinite(x).all()) for x in inputs) else _safe_logsumexp
+    if backend == "auto":
+        S, D = len(_nodes(sizes)), len(sizes)
+        step = B * S * S * (D + 1)
+        backend = "dense" if step <= _DENSE_MAX_STEP_ELEMENTS and step * T <= _DENSE_MAX_ELEMENTS else "structured"
+    run = _forward_dense if backend == "dense" else _forward_structured
+    return run(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, lse)
+
+
+def _forward_dense(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, lse):
+    """S x S transition matrices for all steps at once, then one log-space matrix-vector product per step.
+
+    The transition from stack n (after step t) to stack n' (at step t+1) goes through the deepest option q still
+    running: the options of n below q terminate, q continues (or q is the root: everything terminated), and
+    the options of n' below q are invoked. q ranges over the common callers of n and n' (and the root), at most
+    D + 1 of them; pop and push costs are suffix sums along the stacks.
+    """
+    B, T = action.shape
+    D = len(sizes)
+    nodes = _nodes(sizes)
+    S = len(nodes)
+    dtype, device = log_eta.dtype, log_eta.device
+    level_start = [sum(sizes[:lv]) for lv in range(D)]  # level lv's options in a [sum K] concatenation
+    widths = [x.shape[-1] for x in log_pi]
+    pi_start = [sum(sizes[i] * widths[i] for i in range(lv)) + sizes[-1] for lv in range(D)]
+    offsets = [A + sum(sizes[:i]) for i in range(D)]
+    index = {n: i for i, n in enumerate(nodes)}
+    bottom, called, depth = [], [], []
+    anc = torch.full((S, D), S, dtype=torch.long)
+    for i, n in enumerate(nodes):
+        lv, o = n[-1]
+        bottom.append(level_start[lv] + o)
+        if len(n) == 1:
+            called.append(o)  # log_eta
+        else:
+            plv, po = n[-2]
+            called.append(pi_start[plv] + po * widths[plv] + offsets[lv] + o)
+        depth.append(len(n) - 1)
+        for k in range(len(n)):
+            anc[i, k] = index[n[: k + 1]]
+    # deepest common caller of every pair, -1 when they only share the root
+    common = torch.full((S, S), -1, dtype=torch.long)
+    for i, n in enumerate(nodes):
+        for j, m in enumerate(nodes):
+            k = 0
+            while k < min(len(n), len(m)) and n[k] == m[k]:
+                k += 1
+            common[i, j] = k - 1
+    depth = torch.tensor(depth)
+    levels = torch.arange(D + 1)
+    # through q at depth i (i = D: the root) is possible when i <= common depth
+    through = (levels[None, None] <= common[..., None]) | (levels == D)[None, None]
+    log_through = torch.where(through, 0.0, -float("inf")).to(dtype=dtype, device=device)
+    valid_depth = ((levels[None] <= depth[:, None]) | (levels == D)[None]).to(device)  # [S, D + 1]
+    anc, bottom, called = anc.to(device), torch.tensor(bottom, device=device), torch.tensor(called, device=device)
+
+    idx = torch.where(mask, action, 0).long()
+    emit_levels = [lp.gather(-1, idx.view(B, T, 1, 1).expand(B, T, lp.shape[2], 1)).squeeze(-1) for lp in log_pi]
+    emit = torch.cat(emit_levels, -1)[..., bottom]
+    term = torch.cat(list(log_term), -1)[..., bottom]
+    cont = torch.cat(list(log_cont), -1)[..., bottom]
+    call = torch.cat([log_eta] + [lp.flatten(2) for lp in log_pi], -1)[..., called]
+    if node_bias is not None:
+        emit = emit + torch.cat([node_bias[s].flatten(2) for s in stack_shapes(D)], -1)
+        call = call + torch.cat([start_bias[s].flatten(2) for s in stack_shapes(D)], -1)
+
+    zero = torch.zeros(B, T, 1, dtype=dtype, device=device)
+
+    def along_stack(x: Tensor) -> Tensor:
+        """[B, T, S] per stack bottom -> [B, T, S, D]: the value at each depth of each stack (0 past its end)."""
+        return torch.cat([x, zero], -1)[..., anc]
+
+    def suffix(x: Tensor) -> Tensor:
+        """[B, T, S, D] -> [B, T, S, D + 1]: sums over depths >= i (no subtraction: -inf stays exact)."""
+        rc = x.flip(-1).cumsum(-1).flip(-1)
+        return torch.cat([rc, torch.zeros_like(rc[..., :1])], -1)
+
+    term_sfx = suffix(along_stack(term))
+    call_sfx = suffix(along_stack(call))
+    cont_at = torch.cat([along_stack(cont), zero.unsqueeze(-1).expand(B, T, S, 1)], -1)
+    # pop: terminations below q (depth i) and q's continuation; the root (i = D) sees every option terminate
+    pop = torch.cat([term_sfx[..., 1:D + 1] + cont_at[..., :D], term_sfx[..., :1]], -1)
+    # push: invocations below q; from the root, the meta-control's choice and every invocation
+    push = torch.cat([call_sfx[..., 1:D + 1], call_sfx[..., :1]], -1)
+    pop = torch.where(valid_depth, pop, 0.0)
+    push = torch.where(valid_depth, push, 0.0)
+    if T > 1:
+        trans = pop[:, :-1, :, None, :] + push[:, 1:, None, :, :] + log_through
+        trans = lse(trans, -1) + emit[:, 1:, None, :]  # [B, T - 1, S, S]
+    # per-step views by unbind: indexing [:, t] would make autograd allocate a full-size gradient per step
+    root_end = pop[..., D].unbind(1)  # [B, S] per step: every option on the stack terminates at s_{t+1}
+    trans = trans.unbind(1) if T > 1 else ()
+
+    # Padded steps run on the zeroed inputs (finite) and are dropped below: no per-step masking needed.
+    alpha = push[:, 0, :, D] + emit[:, 0]
+    z = lse(alpha, -1)
+    alpha = alpha - z.unsqueeze(-1)
+    alphas, log_zs = [alpha], [z]
+    for t in range(T - 1):
+        new = lse(alpha.unsqueeze(-1) + trans[t], 1)
+        z = lse(new, -1)
+        alpha = new - z.unsqueeze(-1)
+        alphas.append(alpha)
+        log_zs.append(z)
+    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: lse(
+        _at(torch.stack(alphas, 1), last) + _at(pop[..., D], last), -1), lse)
+
+
+def _at(x: Tensor, last: Tensor) -> Tensor:
+    """``x[b, last[b]]`` for ``x`` of shape ``[B, T, ...]``."""
+    index = last.view(-1, 1, *([1] * (x.ndim - 2))).expand(-1, 1, *x.shape[2:])
+    return x.gather(1, index).squeeze(1)
+
+
+def _total(mask: Tensor, terminal: Tensor, log_z: Tensor, root_at, lse) -> Tensor:
+    """log P: the per-step normalisers over each row's valid steps, times, for terminal rows, the probability
+    that every option on the stack terminates at ``s_T`` (``root_at(last)``; the normalised message sums to 1)."""
+    last = mask.sum(1) - 1
+    total = torch.where(mask, log_z, 0.0).sum(1)
+    return total + torch.where(terminal, root_at(last), 0.0)
+
+
+def _forward_structured(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, lse):
+    """The recursion over the tree of stack shapes, O(S) per step (more, smaller operations per step)."""
+    B, T = action.shape
+    D = len(sizes)
+    shapes = stack_shapes(D)
+    offsets = [A + sum(sizes[:i]) for i in range(D)]  # where level i's options start in an augmented space
+
+    def view(x: Tensor, depth: int) -> Tensor:
+        # [B, T, ...trailing] -> [B, T, 1 x depth, ...trailing]: broadcast over the callers on the stack
+        return x.view(B, T, *([1] * depth), *x.shape[2:])
+
+    # Everything that does not depend on the message, for all steps at once.
+    idx = torch.where(mask, action, 0).long()
+    emit, term, cont, call = {}, {}, {}, {}
+    for s in shapes:
+        lv, depth = s[-1], len(s) - 1
+        lp = log_pi[lv]
+        e = lp.gather(-1, idx.view(B, T, 1, 1).expand(B, T, lp.shape[2], 1)).squeeze(-1)
+        emit[s] = view(e, depth)
+        term[s] = view(log_term[lv], depth)
+        cont[s] = view(log_cont[lv], depth)
+        if depth:
+            caller = s[-2]
+            c = log_pi[caller][..., offsets[lv] : offsets[lv] + sizes[lv]]  # [B, T, K_caller, K_lv]
+            call[s] = view(c, depth - 1)
+    # per-step views by unbind: indexing [:, t] would make autograd allocate a full-size gradient per step
+    emit, term, cont, call = ({s: x.unbind(1) for s, x in d.items()} for d in (emit, term, cont, call))
+    eta = log_eta.unbind(1)
+    node_bias = None if node_bias is None else {s: x.unbind(1) for s, x in node_bias.items()}
+    start_bias = None if start_bias is None else {s: x.unbind(1) for s, x in start_bias.items()}
+    children = {s: [c for c in shapes if len(c) == len(s) + 1 and c[:-1] == s] for s in shapes}
+    top = shapes[0]
+    last = mask.sum(1) - 1
+    steps = range(T)
+
+    def step_bias(bias, s, t):
+        return 0.0 if bias is None else bias[s][t]
+
+    def push(t: int, root: Tensor | None, resume: dict | None) -> dict:
+        """alpha_t (unnormalised) from the mass returned to the root and the resumed options."""
+        alpha, chooser = {}, {}
+        for s in shapes:
+            if len(s) == 1:
+                entry = eta[t] if root is None else root.unsqueeze(-1) + eta[t]
+            else:
+                entry = chooser[s[:-1]].unsqueeze(-1) + call[s][t]
+            entry = entry + step_bias(start_bias, s, t)
+            p = entry if resume is None else _lse([resume[s], entry])
+            chooser[s] = p
+            alpha[s] = p + emit[s][t] + step_bias(node_bias, s, t)
+        return alpha
+
+    def pop(t: int, alpha: dict) -> tuple[Tensor, dict]:
+        """After step t: the mass reaching the root (top option terminated) and each option's resume mass."""
+        ret, resume = {}, {}
+        for s in reversed(shapes):
+            parts = [alpha[s]] + [lse(ret[c], -1) for c in children[s]]
+            m = _lse(parts)
+            ret[s] = m + term[s][t]
+            resume[s] = m + cont[s][t]
+        return lse(ret[top], -1), resume
+
+    def _lse(xs: list[Tensor]) -> Tensor:
+        return xs[0] if len(xs) == 1 else lse(torch.stack(xs, 0), 0)
+
+    def normalise(alpha: dict) -> tuple[dict, Tensor]:
+        z = lse(torch.cat([a.reshape(B, -1) for a in alpha.values()], -1), -1)
+        return {s: a - z.view(B, *([1] * (a.ndim - 1))) for s, a in alpha.items()}, z
+
+    alpha, z = normalise(push(0, None, None))
+    roots, log_zs = [], [z]
+    for t in steps:
+        root, resume = pop(t, alpha)
+        roots.append(root)
+        if t == T - 1:
+            break
+        alpha, z = normalise(push(t + 1, root, resume))
+        log_zs.append(z)
+    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: _at(torch.stack(roots, 1), last), lse)
