@@ -1,4 +1,5 @@
 """Planted structures with known ground truth, for tests, benchmarks and sanity checks of discovery."""
 from torchrl_options.testing.planted import label_accuracy, planted_corridor_demonstrations
+from torchrl_options.testing.planted_hierarchy import planted_two_level_demonstrations
 
-__all__ = ["label_accuracy", "planted_corridor_demonstrations"]
+__all__ = ["label_accuracy", "planted_corridor_demonstrations", "planted_two_level_demonstrations"]

@@ -1,0 +1,376 @@
+"""OptionExecutor: step-by-step invariants in every env layout, nesting, seeding and bad input."""
+from __future__ import annotations
+
+from functools import partial
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.data import OneHot
+from torchrl.envs import Compose, ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
+from torchrl.modules import EGreedyModule, QValueActor
+
+from _tiny_envs import BIG, Corridor, CheckpointOptions, checkpoint_options, constant_options
+from torchrl_options.transforms import OptionExecutor
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+L, EVERY, A, K = 8, 3, 2, 2  # corridor length, checkpoint spacing, primitive actions, options
+
+
+def corridor_with_executor(batch_size=(), max_steps=12, **kwargs):
+    env = Corridor(L, max_steps=max_steps, batch_size=batch_size)
+    return env.append_transform(OptionExecutor(checkpoint_options(L, EVERY), num_options=K, **kwargs))
+
+
+def check_invariants(
+    data: TensorDict, num_actions: int = A, primitive_actions: bool = True, action_key=("action",)
+) -> int:
+    """Checks the executor's records step by step, env by env; returns the number of option steps seen.
+
+    ``data`` is [T] or [N, T] (time last), collected with checkpoint options (option 0 goes right, 1 goes
+    left, both until a checkpoint cell), which are deterministic so every record can be recomputed.
+    ``action_key`` is the executor's input (under a level-2 executor, the action level 2 passed down).
+    """
+    data = data.reshape(-1, data.shape[-1]).cpu()
+    opts = CheckpointOptions(L, EVERY)
+    option_steps = 0
+    for env_data in data.unbind(0):
+        action = env_data[action_key].reshape(-1)
+        nxt = env_data["next"]
+        executed = nxt["executed_action"].reshape(-1)
+        option = nxt["executed_option"].reshape(-1)
+        decision = nxt["option_decision"].reshape(-1)
+        running_after = nxt["option"].reshape(-1)
+        done = nxt["done"].reshape(-1)
+        position_after = nxt["position"].reshape(-1)
+        # the env received exactly the executed action
+        torch.testing.assert_close(nxt["received_action"].reshape(-1), executed)
+        for t in range(action.shape[0]):
+            if t == 0:
+                # the executor's state is part of the data: the first step of a batch continues it
+                expect_decision = bool(env_data["option"].reshape(-1)[0] < 0)
+            else:
+                # the decision for step t is "no option running after step t-1": no option, the option
+                # terminated at s_t (evaluated after the step, where it landed) or the episode ended
+                prev = int(option[t - 1])
+                expect_decision = bool(
+                    done[t - 1] or prev < 0 or opts.terminates(position_after[t - 1 : t].unsqueeze(-1)).item()
+                )
+            assert bool(decision[t]) == expect_decision, f"step {t}: decision {bool(decision[t])}"
+            assert bool(running_after[t] < 0) == (bool(done[t]) or option[t] < 0 or opts.terminates(position_after[t : t + 1].unsqueeze(-1)).item())
+            if decision[t]:
+                a = int(action[t])
+                if primitive_actions:
+                    assert int(option[t]) == (a - num_actions if a >= num_actions else -1)
+                    if a < num_actions:
+                        assert int(executed[t]) == a
+                else:
+                    assert int(option[t]) == a
+            else:
+                # a running option keeps control whatever the policy drew
+                assert int(option[t]) == int(option[t - 1]) >= 0
+            if option[t] >= 0:
+                option_steps += 1
+                assert int(executed[t]) == int(opts.action(option[t]))
+    return option_steps
+
+
+def test_augmented_spec_and_single_env():
+    env = corridor_with_executor()
+    assert env.action_spec.n == A + K
+    assert env.base_env.action_spec.n == A
+    check_env_specs(env)
+    env.set_seed(0)
+    data = env.rollout(200, break_when_any_done=False)  # uniform random augmented actions: epsilon = 1
+    assert check_invariants(data) > 20
+    assert data["next", "option_decision"].any() and not data["next", "option_decision"].all()
+    # the first step of every episode is a decision
+    starts = torch.cat([torch.ones(1, dtype=torch.bool), data["next", "done"].reshape(-1)[:-1]])
+    assert data["next", "option_decision"][starts].all()
+
+
+def test_options_only_mode():
+    env = corridor_with_executor(primitive_actions=False)
+    assert env.action_spec.n == K
+    check_env_specs(env)
+    data = env.rollout(100, break_when_any_done=False)
+    assert (data["next", "executed_option"] >= 0).all()
+    check_invariants(data, primitive_actions=False)
+
+
+def test_termination_evaluated_after_the_step():
+    """Option 0 from cell 0 goes right until the checkpoint cell 3, lands there and stops: no overshoot."""
+    env = corridor_with_executor(max_steps=50)
+    td = env.reset()
+    positions = []
+    for action in [A + 0, 0, 0, 0]:  # start option 0, then the policy's (ignored) actions
+        td["action"] = torch.tensor(action)
+        td = env.step(td)
+        positions.append(int(td["next", "position"]))
+        td = env.step_mdp(td)
+    assert positions[:3] == [1, 2, 3]
+    assert positions[3] == 2  # at the checkpoint the option has ended: the policy's "left" was executed
+
+
+def test_partial_reset_keeps_running_options():
+    env = corridor_with_executor(batch_size=[3], max_steps=50)
+    td = env.reset()
+    td["action"] = torch.tensor([A + 0, A + 0, 0])
+    td = env.step_mdp(env.step(td))
+    assert td["option"].tolist() == [0, 0, -1]
+    td["_reset"] = torch.tensor([[True], [False], [False]])
+    td = env.reset(td)
+    assert td["option"].tolist() == [-1, 0, -1]
+    assert td["position"].reshape(-1).tolist() == [0, 1, 0]
+    td["action"] = torch.tensor([1, 0, 1])  # env 1 still runs option 0 (right) and ignores its "left"
+    td = env.step(td)
+    assert td["next", "executed_action"].tolist() == [1, 1, 1]
+    assert td["next", "option_decision"].tolist() == [True, False, True]
+
+
+# Worker processes: "fork" starts in a second where "spawn" re-imports torch for tens of seconds on a loaded
+# 2-core machine; the workers run single-threaded, so forking is safe. The spawn variant (which also checks
+# that the executor and its options pickle) is marked slow.
+def test_serial_env_outside():
+    env = TransformedEnv(
+        SerialEnv(2, partial(Corridor, L, 12)), OptionExecutor(checkpoint_options(L, EVERY), num_options=K)
+    )
+    check_env_specs(env)
+    env.set_seed(0)
+    check_invariants(env.rollout(60, break_when_any_done=False))
+
+
+def test_parallel_env_outside():
+    env = TransformedEnv(
+        ParallelEnv(2, partial(Corridor, L, 12), mp_start_method="fork"),
+        OptionExecutor(checkpoint_options(L, EVERY), num_options=K),
+    )
+    try:
+        check_env_specs(env)
+        env.set_seed(0)
+        check_invariants(env.rollout(60, break_when_any_done=False))
+    finally:
+        env.close()
+
+
+def stochastic_corridor(max_steps=12):
+    """Options with random actions and terminations: their draws come only from the executor's generator."""
+    options = constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, -1.0])
+    return Corridor(L, max_steps=max_steps).append_transform(OptionExecutor(options, num_options=K))
+
+
+def _inside_parallel_workers(start_method):
+    # worker 0: deterministic checkpoint options (invariants); worker 1: stochastic options (seeding)
+    env = ParallelEnv(
+        2, [partial(corridor_with_executor, (), 12), partial(stochastic_corridor, 12)], mp_start_method=start_method
+    )
+    try:
+        check_env_specs(env)
+        runs = []
+        for seed in (0, 0, 1):
+            env.set_seed(seed)
+            torch.manual_seed(0)  # the random policy of the rollout draws from the main process' generator
+            runs.append(env.rollout(60, break_when_any_done=False))
+    finally:
+        env.close()
+    check_invariants(runs[0][0])
+    # each worker seeds its executor through env.set_seed: same seed, same draws; another seed, other draws
+    for key in ("executed_action", "option_decision"):
+        assert (runs[0]["next", key] == runs[1]["next", key]).all()
+    assert (runs[0]["next", "executed_action"][1] != runs[2]["next", "executed_action"][1]).any()
+
+
+def test_inside_parallel_workers_and_reproducible():
+    _inside_parallel_workers("fork")
+
+
+@pytest.mark.slow
+def test_inside_parallel_workers_spawn():
+    _inside_parallel_workers("spawn")
+
+
+def test_collector_with_qvalue_egreedy_policy():
+    env = corridor_with_executor(batch_size=[3])
+    spec = env.full_action_spec_unbatched["action"]
+    actor = QValueActor(torch.nn.LazyLinear(spec.n), in_keys=["observation"], spec=spec)
+    policy = TensorDictSequential(actor, EGreedyModule(spec, eps_init=1.0, eps_end=1.0))
+    collector = Collector(env, policy, frames_per_batch=60, total_frames=120, auto_register_policy_transforms=False)
+    collector.set_seed(0)
+    batches = [batch.clone() for batch in collector]
+    collector.shutdown()
+    data = torch.cat(batches, -1)
+    assert data.shape == (3, 40)
+    # the policy draws an action at every step; on non-decision steps it is ignored
+    assert check_invariants(data) > 10
+    ignored = ~data["next", "option_decision"]
+    assert (data["action"][ignored] != data["next", "executed_action"][ignored]).any()
+
+
+def _multisync(monkeypatch, start_method):
+    import torch.multiprocessing as mp
+    from torchrl.collectors import _multi_base
+
+    monkeypatch.setattr(_multi_base, "_get_mp_ctx", lambda *args, **kwargs: mp.get_context(start_method))
+    collector = MultiSyncCollector(
+        [partial(corridor_with_executor, (), 12)] * 2, policy=None, frames_per_batch=40, total_frames=80
+    )
+    collector.set_seed(0)
+    try:
+        batches = [batch.clone() for batch in collector]
+    finally:
+        collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch.shape[0] == 2
+    check_invariants(torch.cat(batches, -1))
+
+
+def test_multisync_collector(monkeypatch):
+    _multisync(monkeypatch, "fork")
+
+
+@pytest.mark.slow
+def test_multisync_collector_spawn(monkeypatch):
+    _multisync(monkeypatch, "spawn")
+
+
+def test_seeding_reproducible_and_distinct():
+    """Stochastic options: actions and terminations come from the executor's generator, seeded by set_seed."""
+    def rollout(seed):
+        env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(
+            OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
+        )
+        env.set_seed(seed)
+        td = env.reset()
+        records = []
+        for _ in range(30):
+            td["action"] = torch.full((4,), A + 0)  # always ask for option 0; it only starts at decisions
+            td = env.step(td)
+            records.append(td["next", "executed_action"].clone())
+            records.append(td["next", "option_decision"].clone())
+            td = env.step_mdp(td)
+        return torch.stack([r.long() for r in records])
+
+    assert (rollout(1) == rollout(1)).all()
+    assert (rollout(1) != rollout(2)).any()
+
+
+def test_stochastic_termination_rate():
+    # termination logit 0 at every state: each option step ends the option with probability 1/2
+    env = Corridor(L, max_steps=1000, batch_size=[64]).append_transform(
+        OptionExecutor(constant_options([[0.0, 0.0], [0.0, 0.0]], [0.0, 0.0]), num_options=K, primitive_actions=False)
+    )
+    env.set_seed(0)
+    data = env.rollout(50, break_when_any_done=False)
+    ended = (data["next", "option"] < 0).float().mean()
+    assert abs(ended.item() - 0.5) < 0.03
+
+
+def test_greedy_options():
+    env = Corridor(L, max_steps=50, batch_size=[8]).append_transform(
+        OptionExecutor(constant_options([[0.0, 0.5], [0.5, 0.0]], [-BIG, -BIG]), num_options=K, greedy=True)
+    )
+    data = env.rollout(10, policy=lambda td: td.set("action", torch.tensor([A + 0] * 4 + [A + 1] * 4)))
+    assert (data["next", "executed_action"][:4] == 1).all() and (data["next", "executed_action"][4:] == 0).all()
+
+
+def scripted_policy(actions):
+    actions = iter(actions)
+    return lambda td: td.set("action", torch.tensor(next(actions)))
+
+
+# ------------------------------------------------------------------------------------------- nesting
+class OuterOption(torch.nn.Module):
+    """One level-2 option over the level-1 space {left, right, option 0, option 1}: always invoke level-1
+    option 0 (right to the next checkpoint); terminate at any cell >= 4 (cells 4 and 5 are passed while the
+    level-1 option runs, so call-and-return must postpone the check to the checkpoint 6)."""
+
+    def forward(self, position):
+        batch = position.shape[:-1]
+        logits = torch.full((*batch, 1, A + K), -BIG)
+        logits[..., 0, A + 0] = BIG
+        term = torch.where(position >= 4, BIG, -BIG).float()
+        return logits, term
+
+
+def nested_env(layout: str, max_steps: int = 30):
+    inner = OptionExecutor(checkpoint_options(L, EVERY), num_options=K)
+    outer = OptionExecutor(
+        TensorDictModule(OuterOption(), ["position"], ["option_logits", "termination_logits"]), num_options=1, level=2
+    )
+    base = Corridor(L, max_steps=max_steps)
+    if layout == "compose":
+        return TransformedEnv(base, Compose(inner, outer))
+    return TransformedEnv(TransformedEnv(base, inner), outer)
+
+
+@pytest.mark.parametrize("layout", ["compose", "stacked"])
+def test_nested_call_and_return(layout):
+    env = nested_env(layout)
+    assert env.action_spec.n == A + K + 1
+    check_env_specs(env)
+    # start the level-2 option, then always "left" (ignored while an option runs)
+    data = env.rollout(8, policy=scripted_policy([A + K + 0] + [0] * 7))
+    pos = data["next", "position"].reshape(-1).tolist()
+    # level-2 option -> level-1 option 0 runs 0..3, returns, level-2 continues (3 < 4) -> option 0 runs 3..6,
+    # returns at 6 >= 4: level-2 terminates there, not at 4 or 5
+    assert pos[:6] == [1, 2, 3, 4, 5, 6]
+    assert data["next", "executed_option_2"][:6].tolist() == [0] * 6
+    assert data["next", "option_2"][:6].tolist() == [0] * 5 + [-1]
+    assert data["next", "option_decision_2"].tolist()[:7] == [True] + [False] * 5 + [True]
+    # the level-2 option acted (passed level-1 option 0 down) only when level 1 was waiting for an action
+    assert data["next", "option_decision"][:6].tolist() == [True, False, False, True, False, False]
+    assert (data["next", "executed_action_2"][data["next", "option_decision"][:6].nonzero()] == A + 0).all()
+
+
+def test_nested_random_policy_outer_never_terminates_while_inner_runs():
+    env = nested_env("compose", max_steps=20)
+    env.set_seed(0)
+    data = env.rollout(300, break_when_any_done=False)
+    check_invariants(data, action_key=("next", "executed_action_2"))  # level 1 under level 2
+    nxt = data["next"]
+    inner_running_after = (nxt["option"] >= 0) & ~nxt["done"].squeeze(-1)
+    outer_option = nxt["executed_option_2"]
+    assert (inner_running_after & (outer_option >= 0)).sum() > 5
+    # an outer option never terminates (nor is replaced) while the inner option it invoked still runs
+    assert (nxt["option_2"][inner_running_after & (outer_option >= 0)] == outer_option[inner_running_after & (outer_option >= 0)]).all()
+    # the outer level decides only when the inner level is free
+    running_before = data["option"] >= 0
+    assert not (data["next", "option_decision_2"] & running_before).any()
+
+
+# ------------------------------------------------------------------------------------------ bad input
+def test_non_categorical_action_spec():
+    env = Corridor(L)
+    env.action_spec = OneHot(2)
+    with pytest.raises(TypeError, match="Categorical"):
+        env.append_transform(OptionExecutor(checkpoint_options(L), num_options=K))
+
+
+def test_options_module_outputs_checked():
+    with pytest.raises(ValueError, match="termination_logits"):
+        OptionExecutor(TensorDictModule(torch.nn.Identity(), ["position"], ["option_logits"]), num_options=K)
+    env = Corridor(L).append_transform(OptionExecutor(checkpoint_options(L), num_options=3))  # wrote K=2
+    with pytest.raises(ValueError, match=r"K=3, A=2"):
+        env.rollout(2)
+    wrong_a = constant_options(torch.zeros(K, 3), torch.zeros(K))
+    env = Corridor(L).append_transform(OptionExecutor(wrong_a, num_options=K))
+    with pytest.raises(ValueError, match=r"A=2"):
+        env.rollout(2)
+
+
+def test_action_out_of_range():
+    env = corridor_with_executor()
+    td = env.reset()
+    td["action"] = torch.tensor(A + K)
+    with pytest.raises(ValueError, match=r"\[0, 4\)"):
+        env.step(td)
+
+
+def test_missing_lower_level():
+    env = Corridor(L).append_transform(OptionExecutor(checkpoint_options(L), num_options=K, level=2))
+    with pytest.raises(KeyError, match="lower_option_key"):
+        env.observation_spec

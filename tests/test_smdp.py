@@ -1,0 +1,217 @@
+"""Decision-level (SMDP) transitions: hand-computed cases, a brute-force reference, batches, DQNLoss."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.data import Categorical
+from torchrl.modules import QValueActor
+from torchrl.objectives import DQNLoss, ValueEstimators
+
+from _tiny_envs import Corridor, checkpoint_options
+from torchrl_options.data import SMDPTransitions, smdp_transitions
+from torchrl_options.transforms import OptionExecutor
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+
+def steps(decision, done, reward=None, terminated=None, observation=None):
+    """A [T] step-level batch; observation t is t (next observation t + 1) unless given."""
+    T = len(decision)
+    done = torch.tensor(done).unsqueeze(-1)
+    obs = torch.arange(T, dtype=torch.float) if observation is None else observation
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": torch.arange(10, 10 + T),
+            "next": {
+                "observation": obs + 1,
+                "reward": (torch.ones(T) if reward is None else torch.tensor(reward, dtype=torch.float)).unsqueeze(-1),
+                "done": done,
+                "terminated": done.clone() if terminated is None else torch.tensor(terminated).unsqueeze(-1),
+                "truncated": done & ~(done.clone() if terminated is None else torch.tensor(terminated).unsqueeze(-1)),
+                "option_decision": torch.tensor(decision),
+            },
+        },
+        [T],
+    )
+
+
+def reference(data: TensorDict, gamma: float):
+    """Brute force, env by env, step by step: (env, start, end, discounted return, k) of complete decisions."""
+    data = data.reshape(-1, data.shape[-1])
+    out = []
+    for n, env_data in enumerate(data.unbind(0)):
+        dec = env_data["next", "option_decision"].tolist()
+        done = env_data["next", "done"].reshape(-1).tolist()
+        rew = env_data["next", "reward"].reshape(-1).tolist()
+        T = len(dec)
+        t = 0
+        while t < T:
+            if not dec[t]:  # started before the batch
+                t += 1
+                continue
+            s, ret, k = t, 0.0, 0
+            while True:
+                ret += gamma**k * rew[t]
+                k += 1
+                if done[t] or (t + 1 < T and dec[t + 1]):
+                    out.append((n, s, t, ret, k))
+                    t += 1
+                    break
+                if t + 1 == T:  # unfinished
+                    t += 1
+                    break
+                t += 1
+    return out
+
+
+def test_hand_computed_option_and_episode_end():
+    gamma = 0.9
+    # t:        0     1      2      3     4      5      6
+    decision = [True, False, False, True, True, False, True]
+    done = [False, False, False, False, False, True, False]  # a 2-step option cut by the episode end at t=5
+    reward = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    out = smdp_transitions(steps(decision, done, reward), gamma)
+    assert out["action"].tolist() == [10, 13, 14]  # the decision steps' actions; the last decision is unfinished
+    assert out["observation"].tolist() == [0.0, 3.0, 4.0]
+    assert out["next", "observation"].tolist() == [3.0, 4.0, 6.0]  # s at the next decision / end of episode
+    assert out["steps_to_next_obs"].reshape(-1).tolist() == [3, 1, 2]
+    expected = torch.tensor([1 + gamma * 2 + gamma**2 * 3, 4.0, 5 + gamma * 6])
+    torch.testing.assert_close(out["next", "reward"].reshape(-1), expected)
+    assert out["next", "done"].reshape(-1).tolist() == [False, False, True]
+    assert out["next", "terminated"].reshape(-1).tolist() == [False, False, True]
+
+
+def test_truncated_episode_is_not_terminal():
+    out = smdp_transitions(steps([True, False], [False, True], terminated=[False, False]), 0.5)
+    assert out["next", "done"].item() and not out["next", "terminated"].item() and out["next", "truncated"].item()
+    assert out["steps_to_next_obs"].item() == 2
+
+
+def test_without_decisions_every_step_is_one():
+    data = steps([True] * 4, [False, True, False, False])
+    del data["next", "option_decision"]
+    out = smdp_transitions(data, 0.9)
+    assert out["steps_to_next_obs"].reshape(-1).tolist() == [1, 1, 1]  # the last step's end is unknown
+    torch.testing.assert_close(out["next", "reward"], data["next", "reward"][:3])
+
+
+def test_option_spanning_two_batches():
+    gamma = 0.5
+    decision = [True, False, False, False, True, False]
+    done = [False] * 6
+    reward = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]
+    data = steps(decision, done, reward)
+    smdp = SMDPTransitions(gamma)
+    first = smdp(data[:2])
+    assert first.shape[0] == 0 and smdp.num_pending == 1
+    second = smdp(data[2:])
+    # the 4-step option started in the first batch ends in the second one
+    assert second["action"].tolist() == [10]
+    assert second["observation"].tolist() == [0.0]
+    assert second["next", "observation"].tolist() == [4.0]
+    assert second["steps_to_next_obs"].item() == 4
+    torch.testing.assert_close(second["next", "reward"].reshape(-1), torch.tensor([1 + 0.5 + 0.25 + 0.125]))
+    # and a decision ending exactly at a batch boundary is completed by the next batch's first decision
+    smdp = SMDPTransitions(gamma)
+    assert smdp(data[:4]).shape[0] == 0
+    out = smdp(data[4:])
+    assert out["steps_to_next_obs"].reshape(-1).tolist() == [4]
+
+
+@pytest.mark.parametrize("chunks", [1, 3, 7])
+def test_random_batches_match_reference(chunks):
+    g = torch.Generator().manual_seed(0)
+    N, T, gamma = 5, 60, 0.8
+    decision = torch.rand(N, T, generator=g) < 0.4
+    done = torch.rand(N, T, generator=g) < 0.08
+    decision[:, 0] = True
+    decision[:, 1:] |= done[:, :-1]  # the executor: a decision after every episode end
+    data = TensorDict(
+        {
+            "observation": torch.randn(N, T, 3, generator=g),
+            "action": torch.randint(0, 6, (N, T), generator=g),
+            "next": {
+                "observation": torch.randn(N, T, 3, generator=g),
+                "reward": torch.randn(N, T, 1, generator=g),
+                "done": done.unsqueeze(-1),
+                "terminated": done.unsqueeze(-1),
+                "option_decision": decision,
+            },
+        },
+        [N, T],
+    )
+    expected = reference(data, gamma)
+    smdp = SMDPTransitions(gamma)
+    bounds = torch.linspace(0, T, chunks + 1).long().tolist()
+    out = torch.cat([smdp(data[:, a:b]) for a, b in zip(bounds[:-1], bounds[1:])])
+    # the stateful version finds every complete decision whatever the batch boundaries (batch order, so
+    # compare sorted by the start observation, unique random numbers)
+    start_obs = torch.stack([data["observation"][e[0], e[1]] for e in expected])
+    end_obs = torch.stack([data["next", "observation"][e[0], e[2]] for e in expected])
+    assert out.shape[0] == len(expected)
+    out = out[out["observation"][:, 0].argsort()]
+    order = start_obs[:, 0].argsort()
+    torch.testing.assert_close(out["observation"], start_obs[order])
+    torch.testing.assert_close(out["next", "observation"], end_obs[order])
+    assert out["steps_to_next_obs"].reshape(-1).tolist() == [expected[i][4] for i in order]
+    torch.testing.assert_close(out["next", "reward"].reshape(-1), torch.tensor([expected[i][3] for i in order]))
+    if chunks == 1:
+        assert out.shape[0] == smdp_transitions(data, gamma).shape[0]
+
+
+def test_collector_batches_with_executor():
+    """End to end: every collected step belongs to exactly one decision (complete or still pending)."""
+    env = Corridor(8, max_steps=10, batch_size=[3]).append_transform(OptionExecutor(checkpoint_options(8), 2))
+    collector = Collector(env, None, frames_per_batch=30, total_frames=90)
+    collector.set_seed(0)
+    smdp = SMDPTransitions(0.9)
+    total_k, frames, decisions, outputs = 0, 0, 0, 0
+    for batch in collector:
+        out = smdp(batch)
+        outputs += out.shape[0]
+        total_k += int(out["steps_to_next_obs"].sum())
+        frames += batch.numel()
+        decisions += int(batch["next", "option_decision"].sum())
+        assert (out["action"] >= 0).all()
+    collector.shutdown()
+    pending_steps = int(smdp._carry.steps[smdp._carry.valid].sum())
+    assert 0 < pending_steps and total_k + pending_steps == frames
+    assert outputs + smdp.num_pending == decisions
+
+
+def test_dqn_loss_bootstraps_with_gamma_k():
+    """DQNLoss (TD(0) estimator) reads steps_to_next_obs: target = R + gamma^k (1 - terminated) max Q'."""
+    gamma, num_actions = 0.9, 3
+    net = torch.nn.Linear(1, num_actions)
+    with torch.no_grad():
+        net.weight.zero_()
+        net.bias.copy_(torch.tensor([1.0, 2.0, 5.0]))  # Q(s, .) = [1, 2, 5] everywhere
+    actor = QValueActor(net, in_keys=["observation"], spec=Categorical(num_actions))
+    loss = DQNLoss(actor, action_space=Categorical(num_actions), delay_value=True, reduction="none")
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
+    k = torch.tensor([[1], [3], [3]])
+    terminated = torch.tensor([[False], [False], [True]])
+    td = TensorDict(
+        {
+            "observation": torch.zeros(3, 1),
+            "action": torch.tensor([0, 1, 1]),
+            "steps_to_next_obs": k,
+            "next": {
+                "observation": torch.zeros(3, 1),
+                "reward": torch.tensor([[0.5], [0.5], [0.5]]),
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [3],
+    )
+    target = 0.5 + gamma ** k.squeeze(-1).float() * 5.0 * (~terminated.squeeze(-1)).float()
+    pred = torch.tensor([1.0, 2.0, 2.0])
+    value = loss(td)["loss"]
+    torch.testing.assert_close(value, (pred - target) ** 2)
+    # without the key every transition is one step long
+    del td["steps_to_next_obs"]
+    torch.testing.assert_close(loss(td)["loss"][1], torch.tensor((2.0 - (0.5 + gamma * 5.0)) ** 2))

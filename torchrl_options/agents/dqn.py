@@ -1,0 +1,357 @@
+"""DQN over primitive actions, options, or both: a small building block for the recipes.
+
+Wires an env factory, an :class:`~torchrl_options.transforms.OptionExecutor`, a ``QValueActor`` with an
+``EGreedyModule``, a ``Collector``, decision-level transitions (:class:`~torchrl_options.data.SMDPTransitions`,
+so that ``DQNLoss`` bootstraps with ``gamma ** k`` after a ``k``-step option), a replay buffer and
+``DQNLoss`` with a target network. This is SMDP Q-learning over the augmented action space of Fox et al.,
+2017 ("Multi-Level Discovery of Deep Options", section 5): the policy decides only when no option runs,
+and its exploration is suspended while an option runs.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase, ExplorationType, ParallelEnv, RewardSum, SerialEnv, StepCounter, set_exploration_type
+from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
+
+from torchrl_options.data.smdp import SMDPTransitions
+from torchrl_options.transforms.option_executor import OptionExecutor
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["OptionsDQNConfig", "OptionsDQN"]
+
+Mode = Literal["actions", "options", "both"]
+
+
+@dataclass
+class OptionsDQNConfig:
+    """Hyper-parameters of :class:`OptionsDQN`. Frames are primitive env steps summed over the batched envs.
+
+    Attributes:
+        mode: ``"actions"`` (plain DQN), ``"options"`` (the policy chooses among options only) or ``"both"``.
+        num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
+            ``parallel=True``) with the executor outside, evaluating the options once for all envs.
+        total_frames: training budget of :meth:`OptionsDQN.train`.
+        frames_per_batch: collector batch size.
+        buffer_size: replay buffer capacity, in decisions.
+        batch_size: decisions per gradient step.
+        learning_starts: decisions in the buffer before the first gradient step.
+        updates_per_batch: gradient steps per collector batch.
+        lr: Adam learning rate.
+        gamma: discount per primitive step.
+        hidden_sizes: hidden layers of the default MLP Q-network.
+        eps_init, eps_end, eps_annealing_frames: linear epsilon-greedy schedule, over frames.
+        target_update: ``"hard"`` (copy every ``hard_update_interval`` gradient steps) or ``"soft"``
+            (Polyak averaging with ``soft_update_eps``).
+        double_dqn: use double DQN targets.
+        loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"``.
+        max_grad_norm: gradient clipping (``None`` to disable).
+        greedy_options: options act greedily instead of sampling their action.
+        observation_key: the input of the default Q-network.
+        seed: seeds torch and the envs.
+        device: device of the networks and the replay buffer (the envs stay on their own device).
+    """
+
+    mode: Mode = "both"
+    num_envs: int = 1
+    parallel: bool = False
+    total_frames: int = 10_000
+    frames_per_batch: int = 64
+    buffer_size: int = 100_000
+    batch_size: int = 64
+    learning_starts: int = 64
+    updates_per_batch: int = 4
+    lr: float = 1e-3
+    gamma: float = 0.99
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    eps_annealing_frames: int = 5_000
+    target_update: Literal["hard", "soft"] = "hard"
+    hard_update_interval: int = 100
+    soft_update_eps: float = 0.995
+    double_dqn: bool = False
+    loss_function: str = "l2"
+    max_grad_norm: float | None = 10.0
+    greedy_options: bool = False
+    observation_key: NestedKey = "observation"
+    seed: int = 0
+    device: str = "cpu"
+
+
+@dataclass
+class TrainingLog:
+    """What :meth:`OptionsDQN.train` records, per finished episode and per gradient step."""
+
+    episode_returns: list[float] = field(default_factory=list)
+    episode_lengths: list[int] = field(default_factory=list)  # primitive steps
+    episode_end_frames: list[int] = field(default_factory=list)  # total frames when the episode ended
+    losses: list[float] = field(default_factory=list)
+
+
+class OptionsDQN:
+    """DQN over actions, options or both, on any env with a ``Categorical`` action.
+
+    Args:
+        env_factory (Callable[[], EnvBase]): makes one env with a ``Categorical(A)`` action and a flat
+            ``config.observation_key`` observation (or pass ``q_network``). Called ``num_envs`` times.
+        config (OptionsDQNConfig): hyper-parameters.
+
+    Keyword Args:
+        options (TensorDictModuleBase, optional): writes ``option_logits`` ``[..., K, A]`` and
+            ``termination_logits`` ``[..., K]``; required unless ``config.mode == "actions"``.
+        num_options (int, optional): ``K``; required with ``options``.
+        q_network (nn.Module, optional): maps the observation to one value per augmented action. Defaults
+            to an MLP with ``config.hidden_sizes``.
+
+    Attributes:
+        env: the (batched, transformed) training env. ``env.full_action_spec_unbatched["action"]`` is the
+            augmented action space.
+        policy: Q-actor followed by epsilon-greedy exploration; ``actor`` is the greedy Q-actor.
+        loss_module, optimizer, replay_buffer, frames (primitive env steps so far), log (:class:`TrainingLog`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.envs import GymEnv
+        >>> from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
+        >>> class Push(torch.nn.Module):  # two options: push left / push right, 4 steps on average
+        ...     def forward(self, obs):
+        ...         logits = torch.tensor([[5.0, -5.0], [-5.0, 5.0]]).expand(*obs.shape[:-1], 2, 2)
+        ...         return logits, torch.full((*obs.shape[:-1], 2), -1.1)
+        >>> options = TensorDictModule(Push(), ["observation"], ["option_logits", "termination_logits"])
+        >>> config = OptionsDQNConfig(mode="both", num_envs=2, total_frames=256, frames_per_batch=64)
+        >>> agent = OptionsDQN(lambda: GymEnv("CartPole-v1", categorical_action_encoding=True), config,
+        ...                    options=options, num_options=2)
+        >>> log = agent.train()
+        >>> agent.frames, len(log.episode_returns) > 0
+        (256, True)
+        >>> checkpoint = agent.state_dict()  # networks, target, optimizer, epsilon, counters, log
+    """
+
+    def __init__(
+        self,
+        env_factory: Callable[[], EnvBase],
+        config: OptionsDQNConfig | None = None,
+        *,
+        options: TensorDictModuleBase | None = None,
+        num_options: int | None = None,
+        q_network: nn.Module | None = None,
+    ):
+        self.config = config = config or OptionsDQNConfig()
+        if config.mode not in ("actions", "options", "both"):
+            raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
+        if config.mode != "actions" and (options is None or num_options is None):
+            raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+        torch.manual_seed(config.seed)
+        self.env_factory = env_factory
+        self.options = options
+        self.num_options = num_options
+        self.device = torch.device(config.device)
+        self.env = self.make_env()
+
+        spec = self.env.full_action_spec_unbatched["action"]
+        if q_network is None:
+            obs_dim = self.env.observation_spec[config.observation_key].shape[-1]
+            q_network = MLP(in_features=obs_dim, out_features=spec.n, num_cells=list(config.hidden_sizes))
+        self.actor = QValueActor(q_network, in_keys=[config.observation_key], spec=spec).to(self.device)
+        self.exploration = EGreedyModule(
+            spec,
+            eps_init=config.eps_init,
+            eps_end=config.eps_end,
+            annealing_num_steps=config.eps_annealing_frames,
+        ).to(self.device)
+        self.policy = TensorDictSequential(self.actor, self.exploration)
+
+        self.loss_module = DQNLoss(
+            self.actor,
+            loss_function=config.loss_function,
+            delay_value=True,
+            double_dqn=config.double_dqn,
+            action_space=spec,
+        )
+        # TD(0) over decisions: y = R + gamma^k (1 - terminated) max_a Q'(s', a), k = steps_to_next_obs
+        self.loss_module.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
+        if config.target_update == "hard":
+            self.target_updater = HardUpdate(self.loss_module, value_network_update_interval=config.hard_update_interval)
+        else:
+            self.target_updater = SoftUpdate(self.loss_module, eps=config.soft_update_eps)
+        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=config.lr)
+        self.replay_buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(config.buffer_size, device=self.device), batch_size=config.batch_size
+        )
+        self.smdp = SMDPTransitions(config.gamma)
+        self.frames = 0
+        self.gradient_steps = 0
+        self.log = TrainingLog()
+
+    # ------------------------------------------------------------------ env
+    def make_env(self) -> EnvBase:
+        """The training env: batched envs, then the executor (outside the batch), ``RewardSum``, ``StepCounter``."""
+        config = self.config
+        if config.num_envs == 1:
+            env = self.env_factory()
+        else:
+            batched = ParallelEnv if config.parallel else SerialEnv
+            env = batched(config.num_envs, self.env_factory)
+        if config.mode != "actions":
+            env = env.append_transform(
+                OptionExecutor(
+                    self.options,
+                    num_options=self.num_options,
+                    primitive_actions=config.mode == "both",
+                    greedy=config.greedy_options,
+                )
+            )
+        if "episode_reward" not in env.observation_spec.keys():
+            env = env.append_transform(RewardSum())
+        if "step_count" not in env.observation_spec.keys():
+            env = env.append_transform(StepCounter())
+        return env
+
+    # ------------------------------------------------------------- training
+    def train(
+        self, total_frames: int | None = None, callback: Callable[[OptionsDQN, TensorDictBase], Any] | None = None
+    ) -> TrainingLog:
+        """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
+
+        ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints).
+        Can be called again to continue training, also after :meth:`load_state_dict`.
+        """
+        config = self.config
+        if total_frames is None:
+            total_frames = config.total_frames - self.frames
+        total_frames = math.ceil(total_frames / config.frames_per_batch) * config.frames_per_batch
+        if total_frames <= 0:
+            return self.log
+        collector = Collector(
+            self.env,
+            self.policy,
+            frames_per_batch=config.frames_per_batch,
+            total_frames=total_frames,
+            storing_device=self.device,
+            policy_device=self.device,
+            auto_register_policy_transforms=False,
+        )
+        collector.set_seed(config.seed + self.frames)
+        self.smdp.reset()  # the collector starts new episodes
+        try:
+            for batch in collector:
+                self._record_episodes(batch)
+                decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
+                if decisions.shape[0]:
+                    self.replay_buffer.extend(decisions)
+                self.frames += batch.numel()
+                self.exploration.step(batch.numel())
+                if len(self.replay_buffer) >= max(config.learning_starts, 1):
+                    for _ in range(config.updates_per_batch):
+                        self._update()
+                collector.update_policy_weights_()
+                if callback is not None:
+                    callback(self, batch)
+        finally:
+            collector.shutdown(close_env=False)
+        return self.log
+
+    def _update(self) -> None:
+        sample = self.replay_buffer.sample().to(self.device)
+        loss = self.loss_module(sample)["loss"]
+        self.optimizer.zero_grad()
+        loss.backward()
+        if self.config.max_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.config.max_grad_norm)
+        self.optimizer.step()
+        self.target_updater.step()
+        self.gradient_steps += 1
+        self.log.losses.append(loss.item())
+
+    def _record_episodes(self, batch: TensorDictBase) -> None:
+        done = batch.get(("next", "done")).squeeze(-1)
+        if not done.any():
+            return
+        # frame index (1-based) of every step, counting all envs of a time step together
+        n_envs = batch.shape[:-1].numel()
+        frame = self.frames + (torch.arange(batch.shape[-1]) + 1) * n_envs
+        frame = frame.expand(batch.shape).to(done.device)
+        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
+        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
+        ends = frame[done]
+        order = ends.argsort(stable=True)
+        self.log.episode_returns += returns[order].tolist()
+        self.log.episode_lengths += lengths[order].tolist()
+        self.log.episode_end_frames += ends[order].tolist()
+        logger.info(
+            "frames %d: %d episodes, mean return %.3f, epsilon %.3f",
+            self.frames + batch.numel(),
+            len(returns),
+            returns.float().mean().item(),
+            self.exploration.eps.item(),
+        )
+
+    # ----------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, num_episodes: int = 10, max_steps: int = 1000) -> list[float]:
+        """Returns of the first ``num_episodes`` episodes of the greedy policy (options act as configured).
+
+        Runs one env from ``env_factory`` (batched if the factory makes batched envs) for at most
+        ``max_steps`` steps per call; episodes still running then are not counted.
+        """
+        saved, self.config.num_envs = self.config.num_envs, 1
+        try:
+            env = self.make_env()
+        finally:
+            self.config.num_envs = saved
+        env.set_seed(self.config.seed + 10_000)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
+        env.close()
+        done = data.get(("next", "done")).squeeze(-1)
+        returns = data.get(("next", "episode_reward")).squeeze(-1)
+        if data.ndim > 1:  # [*envs, T] -> [T, *envs]: episodes in the order they ended
+            done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
+        return returns[done][:num_episodes].tolist()
+
+    # ---------------------------------------------------------- checkpoints
+    def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:
+        """Networks (online and target, in ``loss_module``), optimizer, epsilon, counters and log."""
+        state = {
+            "loss_module": self.loss_module.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "exploration": self.exploration.state_dict(),
+            "frames": self.frames,
+            "gradient_steps": self.gradient_steps,
+            "log": asdict(self.log),
+            "config": asdict(self.config),
+        }
+        if include_buffer:
+            state["replay_buffer"] = self.replay_buffer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.loss_module.load_state_dict(state["loss_module"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.exploration.load_state_dict(state["exploration"])
+        self.frames = state["frames"]
+        self.gradient_steps = state["gradient_steps"]
+        self.log = TrainingLog(**state["log"])
+        if "replay_buffer" in state:
+            self.replay_buffer.load_state_dict(state["replay_buffer"])
+
+    def save(self, path, include_buffer: bool = False) -> None:
+        torch.save(self.state_dict(include_buffer=include_buffer), path)
+
+    def load(self, path) -> None:
+        self.load_state_dict(torch.load(path, weights_only=False))

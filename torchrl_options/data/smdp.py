@@ -1,0 +1,250 @@
+"""Decision-level (SMDP) transitions from step-level data collected with an ``OptionExecutor``.
+
+Q-learning over primitive actions and options (Sutton, Precup and Singh, 1999; Fox et al., 2017, section 5)
+needs one transition per *decision*: the state ``s_t`` where the policy chose the augmented action ``a_t``,
+the discounted reward of the ``k`` steps the choice lasted,
+
+.. math::
+
+    R_t = r_t + \\gamma r_{t+1} + \\dots + \\gamma^{k-1} r_{t+k-1},
+
+the state ``s_{t+k}`` at the next decision (or the last state of the episode), the done flags of that last
+step and ``steps_to_next_obs = k``, so that TorchRL's value estimators (and hence ``DQNLoss``) bootstrap with
+``gamma ** k``: ``y = R_t + gamma^k (1 - terminated) max_a Q(s_{t+k}, a)``. The rewards are discounted
+inside the option (the authors' code summed them undiscounted and bootstrapped with a single ``gamma``).
+A truncated episode keeps ``terminated=False`` and is bootstrapped.
+"""
+from __future__ import annotations
+
+import logging
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey, unravel_key
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["smdp_transitions", "SMDPTransitions"]
+
+
+def smdp_transitions(
+    data: TensorDictBase,
+    gamma: float,
+    *,
+    decision_key: NestedKey = ("next", "option_decision"),
+    reward_key: NestedKey = ("next", "reward"),
+    done_key: NestedKey = ("next", "done"),
+    steps_key: NestedKey = "steps_to_next_obs",
+) -> TensorDictBase:
+    r"""Turns a batch of step-level data into one transition per decision.
+
+    A decision starts at every step ``t`` with ``data[decision_key][t]`` (the policy's action was used)
+    and lasts until the step before the next decision or the end of the episode. Decisions whose end is
+    not in the batch (the trailing one of each env, unless its episode ended at the last step) are
+    dropped: use :class:`SMDPTransitions` to carry them over to the next collector batch.
+
+    Args:
+        data (TensorDictBase): step-level data of shape ``[T]`` or ``[*B, T]`` (time last), as yielded by
+            a :class:`~torchrl.collectors.Collector` over an env with an
+            :class:`~torchrl_options.transforms.OptionExecutor` (``split_trajs=False``). Without
+            ``decision_key`` every step is a decision (``k = 1``).
+        gamma (float): the discount factor.
+
+    Keyword Args:
+        decision_key (NestedKey): the executor's decision record. Defaults to ``("next", "option_decision")``.
+        reward_key (NestedKey): Defaults to ``("next", "reward")``.
+        done_key (NestedKey): Defaults to ``("next", "done")``.
+        steps_key (NestedKey): where ``k`` is written. Defaults to ``"steps_to_next_obs"``, the key that
+            TorchRL's value estimators read.
+
+    Returns:
+        A TensorDict of shape ``[M]``, one entry per decision: the root entries of the decision step
+        (observation, augmented ``action``, ...), ``"next"`` entries of its last step (next observation,
+        ``done``/``terminated``/``truncated``) with ``reward_key`` replaced by the discounted sum, and
+        ``steps_key``. Ordered by env, then time.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options.data import smdp_transitions
+        >>> data = TensorDict({
+        ...     "observation": torch.arange(5.0),
+        ...     "action": torch.tensor([3, 0, 0, 1, 2]),
+        ...     "next": {
+        ...         "observation": torch.arange(1.0, 6.0),
+        ...         "reward": torch.ones(5, 1),
+        ...         "done": torch.tensor([[False], [False], [False], [True], [False]]),
+        ...         "terminated": torch.tensor([[False], [False], [False], [True], [False]]),
+        ...         "option_decision": torch.tensor([True, False, False, True, True]),
+        ...     },
+        ... }, [5])
+        >>> out = smdp_transitions(data, gamma=0.5)
+        >>> out["action"], out["steps_to_next_obs"].squeeze(-1), out["next", "reward"].squeeze(-1)
+        (tensor([3, 1]), tensor([3, 1]), tensor([1.7500, 1.0000]))
+        >>> out["next", "observation"]  # the 3-step option ends at the next decision, s_3
+        tensor([3., 4.])
+    """
+    out, _ = _decisions(data, gamma, None, _Keys(decision_key, reward_key, done_key, steps_key))
+    return out
+
+
+class SMDPTransitions:
+    r"""Stateful :func:`smdp_transitions` that carries unfinished decisions across collector batches.
+
+    A decision still running at the end of a batch (an option that spans two collector batches) is kept,
+    with its partial discounted reward and step count, and completed with the next batch. Call it on every
+    batch of one collector, in order; :meth:`reset` forgets the carried decisions (e.g. after the collector
+    was reset). The number of envs (leading batch size) must stay the same between calls.
+
+    Args:
+        gamma (float): the discount factor.
+
+    Keyword Args:
+        decision_key, reward_key, done_key, steps_key (NestedKey): as in :func:`smdp_transitions`.
+
+    Examples:
+        >>> from torchrl.collectors import Collector
+        >>> from torchrl_options.data import SMDPTransitions
+        >>> smdp = SMDPTransitions(gamma=0.99)
+        >>> for batch in collector:  # doctest: +SKIP
+        ...     replay_buffer.extend(smdp(batch))
+    """
+
+    def __init__(
+        self,
+        gamma: float,
+        *,
+        decision_key: NestedKey = ("next", "option_decision"),
+        reward_key: NestedKey = ("next", "reward"),
+        done_key: NestedKey = ("next", "done"),
+        steps_key: NestedKey = "steps_to_next_obs",
+    ):
+        self.gamma = gamma
+        self.keys = _Keys(decision_key, reward_key, done_key, steps_key)
+        self._carry: _Carry | None = None
+
+    def __call__(self, data: TensorDictBase) -> TensorDictBase:
+        carry = self._carry
+        n = data.shape[:-1].numel() if data.ndim > 1 else 1
+        if carry is not None and carry.td.shape[0] != n:
+            logger.warning(
+                "SMDPTransitions: the batch has %d envs, the carried decisions %d; dropping them.",
+                n,
+                carry.td.shape[0],
+            )
+            carry = None
+        out, self._carry = _decisions(data, self.gamma, carry, self.keys)
+        return out
+
+    def reset(self) -> None:
+        """Forgets the decisions carried over from the previous batch."""
+        self._carry = None
+
+    @property
+    def num_pending(self) -> int:
+        """Number of envs whose current decision is still running."""
+        return 0 if self._carry is None else int(self._carry.valid.sum())
+
+
+class _Keys:
+    def __init__(self, decision_key, reward_key, done_key, steps_key):
+        self.decision = unravel_key(decision_key)
+        self.reward = unravel_key(reward_key)
+        self.done = unravel_key(done_key)
+        self.steps = unravel_key(steps_key)
+
+
+class _Carry:
+    """Per env, the decision still running at the end of a batch, as one macro-step of ``steps`` steps."""
+
+    def __init__(self, td: TensorDictBase, valid: torch.Tensor, steps: torch.Tensor):
+        self.td = td  # [N]: root entries of the decision step, "next" of the last step seen, partial reward
+        self.valid = valid  # [N] bool
+        self.steps = steps  # [N] long
+
+
+def _decisions(
+    data: TensorDictBase, gamma: float, carry: _Carry | None, keys: _Keys
+) -> tuple[TensorDictBase, _Carry]:
+    if data.ndim == 0:
+        raise ValueError("smdp_transitions expects data with a time dimension (shape [T] or [*B, T]).")
+    T = data.shape[-1]
+    data = data.reshape(-1, T)
+    N = data.shape[0]
+    device = data.device if data.device is not None else data.get(keys.done).device
+
+    def per_step(key: NestedKey, default=None) -> torch.Tensor | None:
+        value = data.get(key, None)
+        if value is None:
+            return default
+        if value.numel() != N * T:
+            raise ValueError(f"Expected one {key!r} per step (shape {[N, T]} up to singleton dims), got {tuple(value.shape)}.")
+        return value.reshape(N, T)
+
+    decision = per_step(keys.decision, torch.ones(N, T, dtype=torch.bool, device=device)).bool()
+    done = per_step(keys.done).bool()
+    steps = torch.ones(N, T, dtype=torch.long, device=device)
+    valid = torch.ones(N, T, dtype=torch.bool, device=device)
+    if carry is not None:
+        # the running decisions become a first macro-step of carry.steps steps
+        data = torch.cat([carry.td.unsqueeze(1), data], 1)
+        decision = torch.cat([carry.valid.unsqueeze(1), decision], 1)
+        done = torch.cat([torch.zeros_like(carry.valid).unsqueeze(1), done], 1)
+        steps = torch.cat([carry.steps.unsqueeze(1), steps], 1)
+        valid = torch.cat([carry.valid.unsqueeze(1), valid], 1)
+        T = T + 1
+    reward = data.get(keys.reward)  # [N, T, *r]
+    time = torch.arange(T, device=device).expand(N, T)
+
+    # a segment starts at a decision, after an episode end, or at the first (valid) step of the batch
+    after_end = torch.ones_like(done)
+    after_end[:, 1:] = done[:, :-1] | ~valid[:, :-1]
+    start = valid & (decision | after_end)
+    start_time = torch.where(start, time, 0).cummax(1).values
+    is_last = valid.clone()
+    is_last[:, :-1] &= start[:, 1:]
+    # discount exponent of each step inside its segment, counted in primitive steps
+    elapsed = steps.cumsum(1) - steps  # steps before t in the row
+    exponent = elapsed - elapsed.gather(1, start_time)
+    discount = torch.pow(torch.as_tensor(gamma, dtype=reward.dtype, device=device), exponent.to(reward.dtype))
+    segment = (torch.arange(N, device=device).unsqueeze(1) * T + start_time).reshape(-1)
+    discount = discount.reshape(N, T, *([1] * (reward.ndim - 2)))
+    returns = torch.zeros_like(reward.reshape(N * T, *reward.shape[2:])).index_add_(
+        0, segment, (discount * reward).reshape(N * T, *reward.shape[2:])
+    )
+    length = (elapsed + steps) - elapsed.gather(1, start_time)  # k, valid at the last step of a segment
+    # a segment whose start step is not a decision began before the data we have: it is dropped
+    known_start = decision.gather(1, start_time) & valid.gather(1, start_time)
+    ends_in_batch = torch.ones_like(done)
+    ends_in_batch[:, -1] = done[:, -1]
+    complete = (is_last & ends_in_batch & known_start).reshape(-1)
+    trailing = (is_last & ~ends_in_batch & known_start)[:, -1]
+
+    flat = data.reshape(-1)
+    ends = complete.nonzero().squeeze(-1)
+    starts = segment[ends]
+    out = _assemble(flat, starts, ends, returns, length.reshape(-1), keys)
+
+    last = torch.arange(N, device=device) * T + T - 1
+    carried = _assemble(flat, segment[last], last, returns, length.reshape(-1), keys, steps_entry=False)
+    return out, _Carry(carried, trailing, length[:, -1].clone())
+
+
+def _assemble(
+    flat: TensorDictBase,
+    starts: torch.Tensor,
+    ends: torch.Tensor,
+    returns: torch.Tensor,
+    length: torch.Tensor,
+    keys: _Keys,
+    steps_entry: bool = True,
+) -> TensorDictBase:
+    """Root entries at ``starts``, ``"next"`` entries at ``ends``, the discounted reward and ``k``."""
+    out = flat[starts].exclude("next")
+    out.set("next", flat.get("next")[ends])
+    reward = returns[starts]
+    out.set(keys.reward, reward)
+    if steps_entry:
+        k = length[ends]
+        out.set(keys.steps, k.view(k.shape[0], *([1] * (reward.ndim - 1))) if reward.ndim > 1 else k)
+    return out

@@ -1,0 +1,4 @@
+"""Environment transforms: running options inside TorchRL envs."""
+from torchrl_options.transforms.option_executor import OptionExecutor
+
+__all__ = ["OptionExecutor"]
