@@ -90,3 +90,13 @@ def test_four_rooms_recipe_command_line(tmp_path):
     )  # fmt: skip
     assert again.returncode == 0
     assert len((out / "cells" / "ran.txt").read_text().split()) == len(cells)
+
+
+def test_four_rooms_recipe_with_two_level_hierarchy(tmp_path):
+    """H2u: level-2 options discovered over level-1 ones, run by nested executors under the DQN."""
+    out = tmp_path / "four_rooms"
+    cfg = _cfg("four_rooms", out, "settings_to_run=[supervised]", "conditions_to_run=[A,H2u]")
+    summary = _load("four_rooms").run(cfg)
+    assert "| supervised | H2u |" in summary
+    _check_outputs(out, [("supervised", c, 0) for c in ("A", "H2u")])
+    assert (out / "cells" / "supervised-seed0" / "hierarchy-K4x2-uniform.pt").exists()

@@ -102,6 +102,13 @@ class TrainingLog:
     losses: list[float] = field(default_factory=list)
 
 
+def _count_executors(env: EnvBase) -> int:
+    transform = getattr(env, "transform", None)
+    if transform is None:
+        return 0
+    return sum(isinstance(m, OptionExecutor) for m in transform.modules())
+
+
 class OptionsDQN:
     """DQN over actions, options or both, on any env with a ``Categorical`` action.
 
@@ -208,12 +215,14 @@ class OptionsDQN:
             batched = ParallelEnv if config.parallel else SerialEnv
             env = batched(config.num_envs, self.env_factory)
         if config.mode != "actions":
+            # over an env that already runs options (a lower level of a hierarchy), these options are one level up
             env = env.append_transform(
                 OptionExecutor(
                     self.options,
                     num_options=self.num_options,
                     primitive_actions=config.mode == "both",
                     greedy=config.greedy_options,
+                    level=1 + _count_executors(env),
                 )
             )
         if "episode_reward" not in env.observation_spec.keys():

@@ -37,6 +37,7 @@ from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
 from torchrl_options.discovery import discover_options, load_options, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.sweep import Cell, CellResult
+from torchrl_options.hierarchy import discover_hierarchy, load_hierarchy, OptionHierarchy, save_hierarchy
 
 __all__ = [
     "make_env",
@@ -181,6 +182,43 @@ def discover_cached(
     return result.options
 
 
+def discover_hierarchy_cached(
+    trajectories: TensorDict | Callable[[], TensorDict],
+    path: str | os.PathLike,
+    *,
+    num_options: list[int],
+    meta_control: str,
+    seed: int,
+    discovery: Mapping[str, Any],
+    progress: bool = False,
+) -> OptionHierarchy:
+    """A multi-level hierarchy (H2u / H2s), loaded from ``path`` when it exists, else discovered and saved."""
+    path = Path(path)
+    if path.exists():
+        logger.info("hierarchy: loading %s", path)
+        return load_hierarchy(path)
+    data = trajectories() if callable(trajectories) else trajectories
+    hierarchy = discover_hierarchy(
+        data,
+        num_options,
+        meta_control=meta_control,
+        num_actions=4,
+        num_cells=discovery.get("num_cells", 2),
+        activation=discovery.get("activation", "tanh"),
+        init=discovery.get("init", "random"),
+        num_iterations=[discovery["num_iterations"], discovery.get("upper_level_iterations", discovery["num_iterations"])]
+        + [discovery.get("upper_level_iterations", discovery["num_iterations"])] * (len(num_options) - 2),
+        batch_size=discovery.get("batch_size"),
+        lr=discovery.get("lr", 1e-2),
+        seed=seed,
+        progress=progress,
+    )
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    save_hierarchy(hierarchy, tmp, metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed})
+    os.replace(tmp, path)
+    return hierarchy
+
+
 # ---------------------------------------------------------------------------------------------------- DQN
 def _dqn_config(cfg: Mapping[str, Any], mode: str, seed: int) -> OptionsDQNConfig:
     dqn = dict(cfg["dqn"])
@@ -192,12 +230,23 @@ def _dqn_config(cfg: Mapping[str, Any], mode: str, seed: int) -> OptionsDQNConfi
 def make_agent(
     cfg: Mapping[str, Any], mode: str, seed: int, options=None, num_options: int | None = None
 ) -> OptionsDQN:
-    """An :class:`OptionsDQN` on ``cfg["num_envs"]`` batched grids (a ``GridWorldEnv(batch_size=[N])``)."""
+    """An :class:`OptionsDQN` on ``cfg["num_envs"]`` batched grids (a ``GridWorldEnv(batch_size=[N])``).
+
+    ``options`` may be an :class:`~torchrl_options.OptionHierarchy`: its lower levels then run in nested
+    executors inside the env and the DQN chooses among primitives and the options of every level.
+    """
     env_cfg, num_envs = dict(cfg["env"]), int(cfg["num_envs"])
     env_seed = 1000 * seed + 101
+    inner = []
+    if isinstance(options, OptionHierarchy):
+        inner = options.executors()[:-1]
+        options, num_options = options.options(options.num_levels), options.num_options[-1]
 
-    def factory() -> GridWorldEnv:
-        return make_env(env_cfg, num_envs, env_seed)
+    def factory():
+        env = make_env(env_cfg, num_envs, env_seed)
+        for executor in inner:
+            env = env.append_transform(executor.clone())
+        return env
 
     return OptionsDQN(factory, _dqn_config(cfg, mode, seed), options=options, num_options=num_options)
 
@@ -312,6 +361,12 @@ def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
 
     else:
         raise ValueError(f"setting source must be 'supervisor' or 'greedy', got {setting['source']!r}.")
+    levels = int(condition.get("levels", 1))
+    if levels > 1:
+        return discover_hierarchy_cached(
+            source, path.with_name(f"hierarchy-K{num_options}x{levels}-{meta}.pt"), num_options=[num_options] * levels,
+            meta_control=meta, seed=cell.seed, discovery=discovery, progress=progress,
+        )  # fmt: skip
     return discover_cached(
         source, path, num_options=num_options, meta_control=meta, seed=cell.seed, discovery=discovery,
         progress=progress,
@@ -343,7 +398,7 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
             agent.log.episode_lengths.clear()
             agent.log.episode_end_frames.clear()
     else:
-        num_options = None if options is None else int(options.num_options)
+        num_options = None if options is None or isinstance(options, OptionHierarchy) else int(options.num_options)
         agent = make_agent(cfg, mode, cell.seed, options=options, num_options=num_options)
     exp_logger = _cell_logger(cfg, cell)
 
@@ -438,8 +493,10 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
 
 
 def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
-    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6)."""
-    from torchrl_options.experiments.option_pictures import draw_options
+    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6), and
+    ``pictures/<setting>-seed<seed>-hierarchy-....png`` for every hierarchy (figure 1: level-2 options coloured by
+    the level-1 option running)."""
+    from torchrl_options.experiments.option_pictures import draw_hierarchy, draw_options
 
     pictures_cfg = dict(cfg.get("pictures") or {})
     out = Path(cfg["out_dir"], "pictures")
@@ -453,6 +510,13 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
                 load_options(path), cfg["env"], target, target_pos=pictures_cfg.get("target"),
                 num_starts=int(pictures_cfg.get("num_starts", 3)), max_length=int(pictures_cfg.get("max_length", 30)),
                 seed=seed,
+            )  # fmt: skip
+            written.append(target)
+        for path in sorted(folder.glob("hierarchy-*.pt")):
+            target = Path(out, f"{setting}-seed{seed}-{path.stem}.png")
+            draw_hierarchy(
+                load_hierarchy(path), cfg["env"], target, num_starts=int(pictures_cfg.get("num_starts", 3)),
+                max_length=2 * int(pictures_cfg.get("max_length", 30)), seed=seed,
             )  # fmt: skip
             written.append(target)
     return written

@@ -17,9 +17,9 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
-from torchrl_options.envs import GridWorldEnv, option_colors, render_grid
+from torchrl_options.envs import draw_trajectory, GridWorldEnv, option_colors, render_grid
 
-__all__ = ["termination_map", "option_trajectories", "draw_options"]
+__all__ = ["termination_map", "option_trajectories", "draw_options", "hierarchy_trajectories", "draw_hierarchy"]
 
 
 def _env(env: GridWorldEnv | Mapping[str, Any], batch: int, seed: int) -> GridWorldEnv:
@@ -168,6 +168,126 @@ def draw_options(
         )  # fmt: skip
     gap = np.full((panels[0].shape[0], 4, 3), 255, dtype=np.uint8)
     image = np.concatenate([x for panel in panels for x in (panel, gap)][:-1], axis=1)
+    if not cv2.imwrite(os.fspath(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {os.fspath(path)!r}.")
+    return image
+
+
+@torch.no_grad()
+def hierarchy_trajectories(
+    hierarchy,
+    env: GridWorldEnv | Mapping[str, Any],
+    *,
+    level: int | None = None,
+    num_starts: int = 3,
+    max_length: int = 60,
+    seed: int = 0,
+) -> list[list[tuple[np.ndarray, np.ndarray]]]:
+    """Trajectories of each option of ``level`` of an :class:`~torchrl_options.OptionHierarchy`, run by the
+    nested :class:`~torchrl_options.OptionExecutor` s (call-and-return) from random starts until it terminates.
+
+    Returns, per option, ``num_starts`` pairs ``(positions [T + 1, 2], lower [T])`` where ``lower[t]`` is the
+    option of the level below that chose the primitive action at step t (``-1``: the option chose a primitive
+    action itself).
+
+    Examples:
+        >>> from torchrl_options import OptionHierarchy, OptionsMLP
+        >>> h = OptionHierarchy(4, [OptionsMLP(4, 4, 2), OptionsMLP(4, 6, 2)])
+        >>> paths = hierarchy_trajectories(h, {"grid": "four-rooms"}, num_starts=2, max_length=5)
+        >>> len(paths), len(paths[0]), paths[0][0][0].shape[1]
+        (2, 2, 2)
+    """
+    level = hierarchy.num_levels if level is None else level
+    probe = env if isinstance(env, GridWorldEnv) else _env(env, 1, seed)
+    K = int(hierarchy.num_options[level - 1])
+    n = K * num_starts
+    base = _env(probe, n, seed)
+    envs = base
+    for executor in hierarchy.executors()[:level]:
+        envs = envs.append_transform(executor)
+    envs.set_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
+    free = base.grid.free_cells
+    starts = free[torch.randint(0, len(free), (n,), generator=generator)]
+    which = torch.arange(K).repeat_interleave(num_starts)
+    td = envs.reset()
+    placed = base.reset_at(agent_pos=starts, target_pos=_target(probe, None))
+    td.update(placed.select("agent_pos", "target_pos", "observation"))
+    running_key = "option" if level == 1 else f"option_{level}"
+    lower_key = None if level == 1 else ("executed_option" if level == 2 else f"executed_option_{level - 1}")
+    first = torch.tensor([hierarchy.option_index(level, int(k)) for k in which])
+    positions, lowers = [td["agent_pos"].clone()], []
+    alive = torch.ones(n, dtype=torch.bool)
+    lengths = torch.zeros(n, dtype=torch.long)
+    for t in range(max_length):
+        td["action"] = first  # used at the first step only: afterwards the option runs and the action is ignored
+        td = envs.step(td)
+        nxt = td["next"]
+        positions.append(torch.where(alive[:, None], nxt["agent_pos"], positions[-1]))
+        lower = nxt[lower_key].reshape(n) if lower_key is not None else torch.full((n,), -1)
+        lowers.append(lower)
+        lengths += alive.long()
+        # the option has returned when no option of its level is running any more
+        alive &= (nxt[running_key].reshape(n) >= 0) & ~nxt["done"].reshape(n)
+        if not alive.any():
+            break
+        td = nxt.clone()
+    stacked = torch.stack(positions, 1).numpy()
+    low = torch.stack(lowers, 1).numpy()
+    out: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(K)]
+    for i in range(n):
+        L = int(lengths[i])
+        out[int(which[i])].append((stacked[i, : L + 1], low[i, :L]))
+    return out
+
+
+def draw_hierarchy(
+    hierarchy,
+    env: GridWorldEnv | Mapping[str, Any],
+    path: str | os.PathLike,
+    *,
+    num_starts: int = 3,
+    max_length: int = 60,
+    cell_size: int = 20,
+    seed: int = 0,
+) -> np.ndarray:
+    """Writes a PNG like the paper's figure 1: one panel per option of every level, each drawn by its
+    trajectories from random starts; the steps of a level-2 (or higher) option are coloured by the option of the
+    level below that was running (grey: a primitive action chosen by the option itself). Returns the picture.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from torchrl_options import OptionHierarchy, OptionsMLP
+        >>> h = OptionHierarchy(4, [OptionsMLP(4, 4, 2), OptionsMLP(4, 6, 2)])
+        >>> image = draw_hierarchy(h, {"grid": "four-rooms"}, os.path.join(tempfile.mkdtemp(), "h.png"),
+        ...                        num_starts=1, max_length=4, cell_size=4)
+        >>> image.shape[0] == 2 * 15 * 4 + 4  # a row of panels per level
+        True
+    """
+    probe = env if isinstance(env, GridWorldEnv) else _env(env, 1, seed)
+    kind = "apple" if probe.task == "apple" else "goal"
+    target = _target(probe, None)
+    grey = (150, 150, 150)
+    rows = []
+    for level in range(1, hierarchy.num_levels + 1):
+        below = option_colors(hierarchy.num_options[level - 2]) if level > 1 else None
+        own = option_colors(hierarchy.num_options[level - 1])
+        panels = []
+        for k, runs in enumerate(hierarchy_trajectories(
+            hierarchy, probe, level=level, num_starts=num_starts, max_length=max_length, seed=seed
+        )):  # fmt: skip
+            image = render_grid(probe.grid, target_pos=target, target_kind=kind, cell_size=cell_size)
+            for positions, lower in runs:
+                for t in range(len(lower)):
+                    color = own[k] if below is None else (grey if lower[t] < 0 else below[int(lower[t])])
+                    draw_trajectory(image, positions[t : t + 2], cell_size=cell_size, color=color, mark_ends=False)
+            panels.append(image)
+        gap = np.full((panels[0].shape[0], 4, 3), 255, dtype=np.uint8)
+        rows.append(np.concatenate([x for panel in panels for x in (panel, gap)][:-1], axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    hgap = np.full((4, width, 3), 255, dtype=np.uint8)
+    image = np.concatenate([x for r in rows for x in (r, hgap)][:-1], axis=0)
     if not cv2.imwrite(os.fspath(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
         raise OSError(f"could not write {os.fspath(path)!r}.")
     return image
