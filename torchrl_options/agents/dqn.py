@@ -22,7 +22,16 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import EnvBase, ExplorationType, ParallelEnv, RewardSum, SerialEnv, StepCounter, set_exploration_type
+from torchrl.envs import (
+    EnvBase,
+    ExplorationType,
+    ParallelEnv,
+    RewardSum,
+    SerialEnv,
+    set_exploration_type,
+    StepCounter,
+    TransformedEnv,
+)
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
@@ -103,10 +112,10 @@ class TrainingLog:
 
 
 def _count_executors(env: EnvBase) -> int:
-    transform = getattr(env, "transform", None)
-    if transform is None:
+    # (batched envs forward unknown attributes to their workers: only look inside a TransformedEnv)
+    if not isinstance(env, TransformedEnv):
         return 0
-    return sum(isinstance(m, OptionExecutor) for m in transform.modules())
+    return sum(isinstance(m, OptionExecutor) for m in env.transform.modules())
 
 
 class OptionsDQN:

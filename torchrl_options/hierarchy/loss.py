@@ -13,6 +13,7 @@ from torch import nn
 from torchrl.objectives.common import LossModule
 
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
+from torchrl_options.objectives.ddo import prepare_trajectories
 from torchrl_options.hierarchy.inference import BACKENDS, hierarchical_forward_backward
 
 __all__ = ["HierarchicalDDOLoss"]
@@ -225,46 +226,11 @@ class HierarchicalDDOLoss(LossModule):
         """The inputs of :func:`hierarchical_forward_backward` for a ``[B, T]`` batch: ``action``, ``log_pi``,
         ``log_term``, ``log_cont`` (lists, level 1 first, the trained level last), ``log_eta``, ``mask``,
         ``terminal`` and ``psi_next`` (the trained level's termination probabilities at ``s_{t+1}``)."""
-        if tensordict.ndim == 1:
-            tensordict = tensordict.unsqueeze(0)
-        if tensordict.ndim != 2:
-            raise ValueError(
-                f"HierarchicalDDOLoss expects trajectories as a [B, T] tensordict, got batch_size "
-                f"{tuple(tensordict.batch_size)}."
-            )
-        B, T = tensordict.batch_size
-        if B == 0 or T == 0:
-            raise ValueError(f"HierarchicalDDOLoss got an empty batch of trajectories (batch_size {(B, T)}).")
         keys = self.tensor_keys
-        mask = tensordict.get(keys.mask, None)
-        if mask is None:
-            mask = torch.ones(B, T, dtype=torch.bool, device=tensordict.device)
-        else:
-            if mask.shape == (B, T, 1):
-                mask = mask.squeeze(-1)
-            if mask.shape != (B, T) or mask.dtype != torch.bool:
-                raise ValueError(
-                    f"{keys.mask!r} must be a bool tensor of shape {(B, T)}, got {mask.dtype} {tuple(mask.shape)}."
-                )
-            if not mask[:, 0].all() or (mask[:, 1:] & ~mask[:, :-1]).any():
-                raise ValueError(
-                    f"{keys.mask!r} must mark a non-empty prefix of each trajectory as valid (padding at the end only)."
-                )
-        obs_keys = self._modules_in_keys()
-        current = tensordict.select(*obs_keys, strict=False)
-        following = tensordict.get("next").select(*obs_keys, strict=False)
-        for key in obs_keys:
-            for name, source in ((key, current), (_next_key(key), following)):
-                x = source.get(key, None)
-                if x is None:
-                    raise KeyError(f"HierarchicalDDOLoss needs {name!r} (an input of the options) in the trajectories.")
-                if x.is_floating_point():
-                    bad = ~torch.isfinite(x).reshape(B, T, -1).all(-1) & mask
-                    if bad.any():
-                        b, t = bad.nonzero()[0].tolist()
-                        raise ValueError(f"{name!r} holds NaN or inf at valid step (b, t) = ({b}, {t}).")
-                valid = mask.view(B, T, *([1] * (x.ndim - 2)))
-                source.set(key, torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)))
+        tensordict, mask, current, following = prepare_trajectories(
+            tensordict, self._modules_in_keys(), keys.mask, owner="HierarchicalDDOLoss"
+        )
+        B, T = tensordict.batch_size
         both = torch.cat([current, following], 0)
 
         action = tensordict.get(keys.action, None)

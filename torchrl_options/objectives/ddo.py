@@ -12,7 +12,7 @@ from torchrl.objectives.common import LossModule
 
 from torchrl_options.inference import forward_backward
 
-__all__ = ["DDOLoss", "option_log_probs"]
+__all__ = ["DDOLoss", "option_log_probs", "prepare_trajectories"]
 
 
 def _key_name(key: NestedKey) -> str:
@@ -122,6 +122,79 @@ def option_log_probs(
         dist = torch.distributions.Normal(loc, scale, validate_args=False)
         return dist.log_prob(action.unsqueeze(-2)).sum(-1)
     raise ValueError(f"action_space must be 'auto', 'categorical' or 'continuous', got {action_space!r}.")
+
+
+def prepare_trajectories(
+    tensordict: TensorDictBase,
+    obs_keys: list[NestedKey],
+    mask_key: NestedKey,
+    *,
+    owner: str = "DDOLoss",
+) -> tuple[TensorDictBase, torch.Tensor, TensorDictBase, TensorDictBase]:
+    """Checks a batch of trajectories and splits out what option networks read at ``s_t`` and ``s_{t+1}``.
+
+    Args:
+        tensordict (TensorDictBase): ``[B, T]`` trajectories (or one ``[T]`` trajectory).
+        obs_keys (list of NestedKey): the entries the networks read, under the root and under ``"next"``.
+        mask_key (NestedKey): the ``[B, T]`` bool validity mask (a missing entry means all valid).
+
+    Keyword Args:
+        owner (str): named in error messages.
+
+    Returns:
+        ``(tensordict [B, T], mask [B, T], current, following)``: ``current`` and ``following`` hold the
+        ``obs_keys`` at ``s_t`` and ``s_{t+1}`` with padding replaced by zeros (padding may hold anything, and
+        zeros keep NaN out of the networks' gradients).
+
+    Raises:
+        ValueError: for a batch that is not ``[B, T]``, an empty batch, a mask that is not a non-empty prefix of
+            each row, or NaN/inf in a valid observation, naming the key. KeyError for a missing observation.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"observation": torch.randn(2, 3, 4), "next": {"observation": torch.randn(2, 3, 4)}},
+        ...                   [2, 3])
+        >>> td, mask, current, following = prepare_trajectories(data, ["observation"], ("collector", "mask"))
+        >>> mask.all().item(), current["observation"].shape
+        (True, torch.Size([2, 3, 4]))
+    """
+    if tensordict.ndim == 1:
+        tensordict = tensordict.unsqueeze(0)
+    if tensordict.ndim != 2:
+        raise ValueError(
+            f"{owner} expects trajectories as a [B, T] tensordict, got batch_size {tuple(tensordict.batch_size)}."
+        )
+    B, T = tensordict.batch_size
+    if B == 0 or T == 0:
+        raise ValueError(f"{owner} got an empty batch of trajectories (batch_size {(B, T)}).")
+    mask = tensordict.get(mask_key, None)
+    if mask is None:
+        mask = torch.ones(B, T, dtype=torch.bool, device=tensordict.device)
+    else:
+        if mask.shape == (B, T, 1):
+            mask = mask.squeeze(-1)
+        if mask.shape != (B, T) or mask.dtype != torch.bool:
+            raise ValueError(f"{mask_key!r} must be a bool tensor of shape {(B, T)}, got {mask.dtype} {tuple(mask.shape)}.")
+        if not mask[:, 0].all() or (mask[:, 1:] & ~mask[:, :-1]).any():
+            raise ValueError(
+                f"{mask_key!r} must mark a non-empty prefix of each trajectory as valid (padding at the end only)."
+            )
+    current = tensordict.select(*obs_keys, strict=False)
+    following = tensordict.get("next").select(*obs_keys, strict=False)
+    for key in obs_keys:
+        for name, source in ((key, current), (("next", key) if isinstance(key, str) else ("next", *key), following)):
+            x = source.get(key, None)
+            if x is None:
+                raise KeyError(f"{owner} needs {name!r} (an input of the option networks) in the trajectories.")
+            if x.is_floating_point():
+                bad = ~torch.isfinite(x).reshape(B, T, -1).all(-1) & mask
+                if bad.any():
+                    b, t = bad.nonzero()[0].tolist()
+                    raise ValueError(f"{name!r} holds NaN or inf at valid step (b, t) = ({b}, {t}).")
+            valid = mask.view(B, T, *([1] * (x.ndim - 2)))
+            source.set(key, torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)))
+    return tensordict, mask, current, following
 
 
 class DDOLoss(LossModule):
@@ -279,45 +352,9 @@ class DDOLoss(LossModule):
         Returns a dict with ``log_pi``, ``log_term``, ``log_cont``, ``log_eta``, ``mask``, ``terminal`` and
         ``psi_next`` (the termination probabilities at ``s_{t+1}``).
         """
-        if tensordict.ndim == 1:
-            tensordict = tensordict.unsqueeze(0)
-        if tensordict.ndim != 2:
-            raise ValueError(
-                f"DDOLoss expects trajectories as a [B, T] tensordict, got batch_size {tuple(tensordict.batch_size)}."
-            )
-        B, T = tensordict.batch_size
-        if B == 0 or T == 0:
-            raise ValueError(f"DDOLoss got an empty batch of trajectories (batch_size {(B, T)}).")
         keys = self.tensor_keys
-        mask = tensordict.get(keys.mask, None)
-        if mask is None:
-            mask = torch.ones(B, T, dtype=torch.bool, device=tensordict.device)
-        else:
-            if mask.shape == (B, T, 1):
-                mask = mask.squeeze(-1)
-            if mask.shape != (B, T) or mask.dtype != torch.bool:
-                raise ValueError(
-                    f"{keys.mask!r} must be a bool tensor of shape {(B, T)}, got {mask.dtype} {tuple(mask.shape)}."
-                )
-            if not mask[:, 0].all() or (mask[:, 1:] & ~mask[:, :-1]).any():
-                raise ValueError(
-                    f"{keys.mask!r} must mark a non-empty prefix of each trajectory as valid (padding at the end only)."
-                )
-        current = tensordict.select(*self.options.in_keys)
-        following = tensordict.get("next").select(*self.options.in_keys)
-        for key in self.options.in_keys:
-            for name, source in ((key, current), (("next", key) if isinstance(key, str) else ("next", *key), following)):
-                x = source.get(key, None)
-                if x is None:
-                    raise KeyError(f"DDOLoss needs {name!r} (an input of the options module) in the trajectories.")
-                valid = mask.view(B, T, *([1] * (x.ndim - 2)))
-                if x.is_floating_point():
-                    bad = ~torch.isfinite(x).reshape(B, T, -1).all(-1) & mask
-                    if bad.any():
-                        b, t = bad.nonzero()[0].tolist()
-                        raise ValueError(f"{name!r} holds NaN or inf at valid step (b, t) = ({b}, {t}).")
-                # padding may hold anything; zeros keep NaN out of the networks' gradients
-                source.set(key, torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)))
+        tensordict, mask, current, following = prepare_trajectories(tensordict, list(self.options.in_keys), keys.mask)
+        B, T = tensordict.batch_size
         both = self.options(torch.cat([current, following], 0))
         out, out_next = both[:B], both[B:]
 
