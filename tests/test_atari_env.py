@@ -1,0 +1,140 @@
+"""The Atari RAM env factory and the RAM encoders (torchrl_options.envs.atari)."""
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import SerialEnv
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_options.envs.atari import (
+    ATARI_GAMES,
+    EpisodicLife,
+    PAPER_NUM_OPTIONS,
+    RAMBytesEncoder,
+    RAMOneHotEncoder,
+    atari_available,
+    make_atari_ram_env,
+    ram_q_network,
+    render_frame,
+)
+
+needs_ale = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
+
+
+def test_one_hot_encoder_equals_linear_on_explicit_one_hot():
+    torch.manual_seed(0)
+    enc = RAMOneHotEncoder(8)
+    ram = torch.randint(0, 256, (5, 3, 128), dtype=torch.uint8)
+    one_hot = torch.nn.functional.one_hot(ram.long(), 256).flatten(-2).float()  # [5, 3, 32768]
+    linear = torch.nn.Linear(128 * 256, 8)
+    with torch.no_grad():
+        linear.weight.copy_(enc.weight.T)
+        linear.bias.copy_(enc.bias)
+    torch.testing.assert_close(enc(ram), linear(one_hot), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(enc(ram.float() / 255.0), enc(ram))  # bytes / 255 is decoded exactly
+    # gradients reach only the rows of the bytes seen
+    enc(ram[0, 0]).sum().backward()
+    assert (enc.weight.grad.abs().sum(1) > 0).sum() == 128
+
+
+def test_bytes_encoder_and_q_network():
+    ram = torch.randint(0, 256, (4, 128), dtype=torch.uint8)
+    enc = RAMBytesEncoder(6)
+    torch.testing.assert_close(enc(ram), enc(ram.float() / 255.0))
+    for encoding in ("bytes", "one_hot"):
+        net = ram_q_network(9, encoding=encoding, num_cells=[16, 8, 8])
+        assert net(ram).shape == (4, 9)
+        assert sum(isinstance(m, torch.nn.Tanh) for m in net) == 3
+    with pytest.raises(ValueError):
+        ram_q_network(3, encoding="pixels")
+
+
+def test_paper_option_counts():
+    assert set(PAPER_NUM_OPTIONS) == set(ATARI_GAMES)
+    assert PAPER_NUM_OPTIONS["Pooyan"] == 7 and PAPER_NUM_OPTIONS["Seaquest"] == 5
+
+
+class _LivesEnv(gym.Env):
+    """Three lives, one lost every 3 steps; game over when none is left."""
+
+    observation_space = gym.spaces.Box(0, 255, (2,), np.uint8)
+    action_space = gym.spaces.Discrete(2)
+
+    class _ALE:
+        def __init__(self):
+            self.n = 3
+
+        def lives(self):
+            return self.n
+
+    def __init__(self):
+        self.ale = self._ALE()
+        self.t = 0
+        self.resets = 0
+
+    def reset(self, *, seed=None, options=None):
+        self.ale.n, self.t = 3, 0
+        self.resets += 1
+        return np.zeros(2, np.uint8), {}
+
+    def step(self, action):
+        self.t += 1
+        if self.t % 3 == 0:
+            self.ale.n -= 1
+        return np.zeros(2, np.uint8), 1.0, self.ale.n == 0, False, {}
+
+
+def test_episodic_life_ends_episodes_at_life_loss_and_resets_only_at_game_over():
+    inner = _LivesEnv()
+    env = EpisodicLife(inner)
+    env.reset()
+    lengths = []
+    for _ in range(3):
+        n, terminated = 0, False
+        while not terminated:
+            _, _, terminated, _, _ = env.step(0)
+            n += 1
+        lengths.append(n)
+        env.reset()
+    assert lengths == [3, 2, 2]  # the reset after a life loss spends one no-op step of the same game
+    assert inner.resets == 2  # one at the start, one after the game over
+
+
+@needs_ale
+def test_make_atari_ram_env_bytes_and_uint8():
+    env = make_atari_ram_env("Seaquest", max_episode_steps=20, noop_max=3, seed=0)
+    check_env_specs(env)
+    data = env.rollout(30)
+    obs = data["observation"]
+    assert obs.dtype == torch.float32 and obs.shape == (20, 128)
+    assert obs.min() >= 0 and obs.max() <= 1
+    assert torch.equal((obs * 255).round(), (obs * 255))  # exact bytes
+    assert data["next", "truncated"][-1].all() and data["next", "step_count"][-1].item() == 20
+    assert env.action_spec.n == 18
+    raw = make_atari_ram_env("Pooyan", ram_encoding="uint8", max_episode_steps=5, seed=0)
+    assert raw.rollout(5)["observation"].dtype == torch.uint8
+    with pytest.raises(ValueError):
+        make_atari_ram_env("Pooyan", ram_encoding="one_hot")
+
+
+@needs_ale
+def test_reward_clipping_and_frame_skip():
+    torch.manual_seed(0)
+    clipped = make_atari_ram_env("Atlantis", max_episode_steps=150, noop_max=0, seed=1)
+    raw = make_atari_ram_env("Atlantis", max_episode_steps=150, noop_max=0, clip_rewards=False, seed=1)
+    rc, rr = clipped.rollout(150)["next", "reward"], raw.rollout(150)["next", "reward"]
+    assert rc.abs().max() <= 1
+    assert rr.max() > 1  # Atlantis scores hundreds per hit
+    one = make_atari_ram_env("Atlantis", frame_skip=1, noop_max=0, max_episode_steps=10, seed=0)
+    assert one.rollout(10).shape == (10,)
+
+
+@needs_ale
+def test_batched_env_specs_and_render():
+    env = SerialEnv(2, lambda: make_atari_ram_env("Gopher", max_episode_steps=10, noop_max=2))
+    check_env_specs(env)
+    env.close()
+    env = make_atari_ram_env("SpaceInvaders", render=True, episodic_life=True, max_episode_steps=5, seed=0)
+    env.rollout(2)
+    frame = render_frame(env)
+    assert frame.shape == (210, 160, 3) and frame.dtype == np.uint8

@@ -1,0 +1,139 @@
+"""The Atari RAM recipe end to end with the smoke preset: outputs, resuming, and the Ray backend."""
+import csv
+import importlib.util
+import os
+
+import pytest
+import torch
+
+from torchrl_options.envs.atari import ATARI_GAMES, atari_available
+from torchrl_options.experiments import ResultsLog
+from torchrl_options.experiments.atari import AtariConfig, _make_agent, _train_episodes, atari_comparison
+
+pytestmark = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _recipe():
+    spec = importlib.util.spec_from_file_location("atari_ram_recipe", os.path.join(ROOT, "recipes", "atari_ram.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _config(overrides):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=os.path.join(ROOT, "recipes", "config"), version_base="1.3"):
+        return compose("atari_ram", overrides=overrides)
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_presets_compose():
+    for preset in ("smoke", "cpu", "cpu-large", "gpu-hour", "paper"):
+        cfg = _config([f"atari_preset={preset}"])
+        config = AtariConfig.from_dict(dict(cfg.atari))
+        assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
+    paper = AtariConfig.from_dict(dict(_config(["atari_preset=paper"]).atari))
+    assert (paper.phase1_episodes, paper.phase3_episodes, paper.num_demonstrations) == (1000, 4000, 100)
+    assert _config(["atari_preset=paper"]).seeds == 50
+    assert _config(["atari_preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
+
+
+def test_smoke_end_to_end_and_resume(tmp_path):
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", "game=Seaquest", f"out_dir={tmp_path}"])
+    ran = recipe.run(cfg)
+    assert [c.name for c in ran] == ["Seaquest-A-seed0", "Seaquest-H1-seed0"]
+    rows = _rows(tmp_path / "results.csv")
+    n = cfg.atari.phase1_episodes + cfg.atari.phase3_episodes
+    for cond in ("A", "H1"):
+        r = [row for row in rows if row["condition"] == cond]
+        assert len(r) == n
+        frames = [int(row["frames"]) for row in r]
+        assert frames == sorted(frames) and frames[0] > 0
+    a = [row for row in rows if row["condition"] == "A"]
+    h = [row for row in rows if row["condition"] == "H1"]
+    p1 = cfg.atari.phase1_episodes
+    assert [x["return"] for x in a[:p1]] == [x["return"] for x in h[:p1]]  # phase 1 is shared
+    # H1's frames include the greedy demonstrations of phase 2
+    assert int(h[p1]["frames"]) > int(h[p1 - 1]["frames"]) + cfg.atari.num_demonstrations
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| Seaquest | 1 | 3 |" in summary and "equal frames" in summary and "better" in summary
+    assert (tmp_path / "curves.png").stat().st_size > 0
+    frames_dir = tmp_path / "option_frames" / "Seaquest"
+    assert (frames_dir / "labels.json").exists()
+    assert any(p.suffix == ".png" for p in frames_dir.iterdir()) and any(p.suffix == ".avi" for p in frames_dir.iterdir())
+    seed_dir = tmp_path / "Seaquest" / "seed0"
+    assert (seed_dir / "phase1.pt").exists() and (seed_dir / "options.pt").exists()
+    from torchrl_options import load_options
+
+    _, _, meta = load_options(seed_dir / "options.pt", with_meta_control=True)
+    assert meta["num_options"] == 5 and len(meta["demo_returns"]) == cfg.atari.num_demonstrations
+    # a re-run skips the finished cells and rewrites the same outputs
+    assert recipe.run(cfg) == []
+    assert _rows(tmp_path / "results.csv") == rows
+    assert atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1)[0].num_seeds == 1
+
+
+def test_periodic_checkpoint_resumes_inside_a_phase(tmp_path):
+    config = AtariConfig(max_episode_steps=20, noop_max=0, hidden_sizes=(8, 8, 8), learning_starts=16,
+                         frames_per_batch=20, updates_per_batch=1, checkpoint_every=1)
+    path = str(tmp_path / "phase1.partial.pt")
+    agent = _make_agent("Pooyan", config, 0, "actions")
+    _train_episodes(agent, 2, path, config)
+    saved = torch.load(path, weights_only=False)
+    saved_returns = list(saved["log"]["episode_returns"])  # load_state_dict keeps (and extends) these lists
+    assert len(saved_returns) >= 1
+    resumed = _make_agent("Pooyan", config, 0, "actions")
+    resumed.load_state_dict(saved)
+    before = len(resumed.log.episode_returns)
+    for key, value in saved["loss_module"].items():
+        torch.testing.assert_close(resumed.loss_module.state_dict()[key], value)
+    assert resumed.frames == saved["frames"]
+    _train_episodes(resumed, before + 1, path, config)
+    assert len(resumed.log.episode_returns) >= before + 1
+    assert resumed.log.episode_returns[:before] == saved_returns
+
+
+def _ray_cfg(tmp_path, game):
+    return _config([
+        "atari_preset=smoke", f"game={game}", f"out_dir={tmp_path}", "sweep.backend=ray", "sweep.num_workers=2",
+        "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
+        "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
+    ])
+
+
+def _check_ray_outputs(tmp_path, ran):
+    assert sorted(c.condition for c in ran) == ["A", "H1"]
+    rows = _rows(tmp_path / "results.csv")
+    assert {(r["condition"], r["seed"]) for r in rows} == {("A", "0"), ("H1", "0")}
+    assert (tmp_path / "summary.md").exists() and (tmp_path / "curves.png").exists()
+
+
+def test_ray_local_two_cells(tmp_path):
+    """The Ray path of the sweep on a local Ray cluster of 2 CPUs: tasks in worker processes, results gathered
+    by the driver into one results.csv. (Ray 2.x has no in-process local mode any more.)"""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        _check_ray_outputs(tmp_path, _recipe().run(_ray_cfg(tmp_path, "Pooyan")))
+    finally:
+        ray.shutdown()
+
+
+@pytest.mark.slow
+def test_smoke_all_five_games(tmp_path):
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", f"games=[{','.join(ATARI_GAMES)}]", f"out_dir={tmp_path}"])
+    recipe.run(cfg)
+    rows = _rows(tmp_path / "results.csv")
+    assert {r["setting"] for r in rows} == set(ATARI_GAMES)
+    summary = (tmp_path / "summary.md").read_text()
+    assert all(f"| {g} |" in summary for g in ATARI_GAMES)
+    assert "of 5 games" in summary

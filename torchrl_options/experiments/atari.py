@@ -1,0 +1,658 @@
+"""The Atari RAM experiment of the DDO paper (figure 3) as a resumable per-cell pipeline, and its summary.
+
+Fox, Krishnan, Stoica, Goldberg, "Multi-Level Discovery of Deep Options", 2017, section 5.2: DQN with primitive
+actions for N episodes; 100 greedy trajectories of that DQN; DDO with K options per game; then DQN over actions
+and options from a reset Q-function, against the baseline that continues the first DQN with actions only.
+
+A cell is ``(game, condition, seed)`` with condition ``"A"`` (the baseline, continuing) or ``"H1"`` (options).
+The two conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes the
+second cell wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its
+end and every ``checkpoint_every`` episodes, and resumes from there.
+
+What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
+episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
+``frames`` is the cumulative number of env steps (agent steps; ``frame_skip`` emulator frames each) at the end of
+each episode, counted from the start of phase 1; for ``H1`` it includes the frames of the greedy demonstrations
+of phase 2, which the baseline does not spend.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, fields
+from functools import partial
+from typing import Any
+
+import numpy as np
+import torch
+from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs.utils import step_mdp
+
+from torchrl_options.experiments.results import ResultsLog, bootstrap_ci, smooth
+from torchrl_options.experiments.sweep import Cell, CellResult
+
+__all__ = [
+    "AtariConfig",
+    "run_atari_cell",
+    "atari_cells",
+    "atari_comparison",
+    "atari_summary_markdown",
+    "write_option_frames",
+]
+
+logger = logging.getLogger(__name__)
+
+CONDITIONS = ("A", "H1")
+
+
+@dataclass
+class AtariConfig:
+    """Settings of one Atari RAM cell (mirrors ``recipes/config/atari_ram.yaml``).
+
+    Env: ``frame_skip``, ``repeat_action_probability``, ``noop_max``, ``episodic_life``, ``clip_rewards``,
+    ``max_episode_steps`` (see :func:`~torchrl_options.envs.atari.make_atari_ram_env`); ``ram_encoding`` is the
+    Q-network's input layer: ``"one_hot"`` (the paper's 128 x 256) or ``"bytes"``. The options networks read
+    ``bytes / 255``.
+
+    Phases: ``phase1_episodes`` (DQN, actions), ``num_demonstrations`` greedy trajectories of at most
+    ``demo_max_steps`` steps, DDO with ``num_options`` (``None``: the paper's count for the game) for
+    ``ddo_iterations``, then ``phase3_episodes`` for each condition.
+
+    DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
+    ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
+    ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` and
+    ``parallel`` (batched collection), ``device``.
+    """
+
+    # env
+    frame_skip: int = 4
+    repeat_action_probability: float = 0.0
+    noop_max: int = 30
+    episodic_life: bool = False
+    clip_rewards: bool = True
+    max_episode_steps: int | None = None
+    ram_encoding: str = "one_hot"
+    # phases
+    phase1_episodes: int = 1000
+    phase3_episodes: int = 4000
+    num_demonstrations: int = 100
+    demo_max_steps: int = 2000
+    num_options: int | None = None
+    options_num_cells: tuple[int, ...] = (64, 64, 64)
+    ddo_iterations: int = 500
+    ddo_batch_size: int | None = 20
+    ddo_lr: float = 1e-3
+    # DQN
+    hidden_sizes: tuple[int, ...] = (64, 64, 64)
+    gamma: float = 0.85
+    eps_init: float = 0.05
+    eps_end: float = 0.05
+    eps_annealing_frames: int = 1
+    lr: float = 1e-4
+    batch_size: int = 64
+    buffer_size: int = 100_000
+    learning_starts: int = 1000
+    frames_per_batch: int = 64
+    updates_per_batch: int = 4
+    hard_update_interval: int = 1000
+    double_dqn: bool = False
+    num_envs: int = 1
+    parallel: bool = False
+    device: str = "cpu"
+    # outputs
+    checkpoint_every: int = 100
+    checkpoint_buffer: bool = True
+    option_frames: bool = True
+    option_frames_max_steps: int = 400
+    torch_threads: int | None = None
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown Atari settings: {sorted(unknown)}")
+        d = dict(d)
+        for key in ("options_num_cells", "hidden_sizes"):
+            if key in d and d[key] is not None:
+                d[key] = tuple(d[key])
+        return cls(**d)
+
+    def env_kwargs(self) -> dict[str, Any]:
+        return dict(
+            frame_skip=self.frame_skip,
+            repeat_action_probability=self.repeat_action_probability,
+            noop_max=self.noop_max,
+            episodic_life=self.episodic_life,
+            clip_rewards=self.clip_rewards,
+            max_episode_steps=self.max_episode_steps,
+        )
+
+    def options_for(self, game: str) -> int:
+        from torchrl_options.envs.atari import PAPER_NUM_OPTIONS
+
+        if self.num_options is not None:
+            return int(self.num_options)
+        return PAPER_NUM_OPTIONS.get(game, 4)
+
+
+def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Sequence[str] = CONDITIONS) -> list[Cell]:
+    """The cells of a sweep, conditions outermost: the first cells of a pool then run the phases 1 and 2 of
+    different seeds in parallel, and the other condition's cells find them cached (rather than wait on a lock).
+
+    Examples:
+        >>> [c.name for c in atari_cells(["Pooyan"], 2)]
+        ['Pooyan-A-seed0', 'Pooyan-A-seed1', 'Pooyan-H1-seed0', 'Pooyan-H1-seed1']
+    """
+    seeds = range(seeds) if isinstance(seeds, int) else seeds
+    return [Cell(g, c, int(s)) for c in conditions for g in games for s in seeds]
+
+
+# ---------------------------------------------------------------------------------------------- pipeline
+class _EnoughEpisodes(Exception):
+    pass
+
+
+def _env_factory(game: str, config: AtariConfig, seed: int, render: bool = False):
+    from torchrl_options.envs.atari import make_atari_ram_env
+
+    return partial(make_atari_ram_env, game, **config.env_kwargs(), render=render, ram_encoding="bytes")
+
+
+def _num_actions(game: str, config: AtariConfig) -> int:
+    env = _env_factory(game, config, 0)()
+    n = env.action_spec.n
+    env.close()
+    return int(n)
+
+
+def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=None, num_options=None):
+    from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
+    from torchrl_options.envs.atari import ram_q_network
+
+    num_actions = _num_actions(game, config)
+    out = num_actions + (num_options if mode == "both" else 0)
+    torch.manual_seed(seed)
+    q_net = ram_q_network(out, encoding=config.ram_encoding, num_cells=config.hidden_sizes)
+    dqn_config = OptionsDQNConfig(
+        mode=mode,
+        num_envs=config.num_envs,
+        parallel=config.parallel,
+        total_frames=10**12,
+        frames_per_batch=config.frames_per_batch,
+        buffer_size=config.buffer_size,
+        batch_size=config.batch_size,
+        learning_starts=config.learning_starts,
+        updates_per_batch=config.updates_per_batch,
+        lr=config.lr,
+        gamma=config.gamma,
+        hidden_sizes=tuple(config.hidden_sizes),
+        eps_init=config.eps_init,
+        eps_end=config.eps_end,
+        eps_annealing_frames=max(int(config.eps_annealing_frames), 1),
+        hard_update_interval=config.hard_update_interval,
+        double_dqn=config.double_dqn,
+        greedy_options=False,
+        seed=seed,
+        device=config.device,
+    )
+    agent = OptionsDQN(
+        _env_factory(game, config, seed), dqn_config, options=options, num_options=num_options, q_network=q_net
+    )
+    if mode != "actions":
+        agent.smdp = _SkipEmptyDecisions(agent.smdp)
+        agent.replay_buffer = _BufferSkippingNothing(agent.replay_buffer)
+    return agent
+
+
+class _NothingToAdd:
+    """Stands for an empty batch of SMDP transitions (see :class:`_SkipEmptyDecisions`)."""
+
+    def reshape(self, *args, **kwargs):
+        return self
+
+
+_NOTHING = _NothingToAdd()
+
+
+class _SkipEmptyDecisions:
+    """Work-around: ``OptionsDQN.train`` calls ``smdp(batch).reshape(-1)`` and ``replay_buffer.extend`` on every
+    collector batch, and tensordict cannot ``reshape(-1)`` an empty tensordict with non-scalar entries: a batch in
+    which no decision completes (one option running through all of it) crashed training. This wraps the SMDP
+    transform and the buffer so that such a batch adds nothing."""
+
+    def __init__(self, smdp):
+        self._smdp = smdp
+
+    def __call__(self, batch):
+        out = self._smdp(batch)
+        return out if out.numel() else _NOTHING
+
+    def __getattr__(self, name):
+        return getattr(self._smdp, name)
+
+
+class _BufferSkippingNothing:
+    def __init__(self, buffer):
+        self._buffer = buffer
+
+    def extend(self, data):
+        if data is _NOTHING:
+            return None
+        return self._buffer.extend(data)
+
+    def __len__(self) -> int:
+        return len(self._buffer)
+
+    def __getattr__(self, name):
+        return getattr(self._buffer, name)
+
+
+def _close(agent) -> None:
+    try:
+        if not agent.env.is_closed:
+            agent.env.close()
+    except Exception as err:  # closing is best effort
+        logger.debug("closing the env failed: %s", err)
+
+
+def _atomic_save(obj: Any, path: str) -> None:
+    tmp = path + ".tmp"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig) -> None:
+    """Trains ``agent`` until its log holds ``num_episodes`` episodes, checkpointing every ``checkpoint_every``."""
+    last = [len(agent.log.episode_returns)]
+
+    def callback(agent, batch):
+        n = len(agent.log.episode_returns)
+        if config.checkpoint_every and n - last[0] >= config.checkpoint_every:
+            _atomic_save(agent.state_dict(), partial_path)
+            last[0] = n
+        if n >= num_episodes:
+            raise _EnoughEpisodes
+
+    if len(agent.log.episode_returns) >= num_episodes:
+        return
+    try:
+        agent.train(total_frames=10**12, callback=callback)
+    except _EnoughEpisodes:
+        pass
+
+
+def _load_if(agent, path: str) -> bool:
+    if os.path.exists(path):
+        agent.load_state_dict(torch.load(path, weights_only=False, map_location=agent.device))
+        logger.info("resumed from %s (%d episodes)", path, len(agent.log.episode_returns))
+        return True
+    return False
+
+
+@contextlib.contextmanager
+def _file_lock(path: str):
+    with open(path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _greedy_rollouts(agent, game: str, config: AtariConfig, seed: int, n: int, max_steps: int, render=False):
+    """``n`` greedy trajectories of the agent's Q-network, one env at a time (and their RGB frames if asked)."""
+    from torchrl_options.envs.atari import render_frame
+
+    env = _env_factory(game, config, seed, render=render)()
+    env.set_seed(seed + 777)
+    actor = agent.actor
+    trajectories, frames = [], []
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(n):
+            if not render:
+                td = env.rollout(max_steps, actor, auto_cast_to_device=True)
+                trajectories.append(td.cpu())
+                continue
+            td = env.reset()
+            steps, screens = [], []
+            for _ in range(max_steps):
+                screens.append(render_frame(env))
+                td = actor(td.to(agent.device)).cpu()
+                td = env.step(td)
+                steps.append(td.clone())
+                td = step_mdp(td)
+                if steps[-1]["next", "done"].any():
+                    break
+            trajectories.append(torch.stack(steps))
+            frames.append(screens)
+    env.close()
+    return (trajectories, frames) if render else trajectories
+
+
+def _phase1(game: str, config: AtariConfig, seed: int, seed_dir: str):
+    path = os.path.join(seed_dir, "phase1.pt")
+    agent = _make_agent(game, config, seed, "actions")
+    if not _load_if(agent, path):
+        partial_path = os.path.join(seed_dir, "phase1.partial.pt")
+        _load_if(agent, partial_path)
+        t0 = time.time()
+        _train_episodes(agent, config.phase1_episodes, partial_path, config)
+        _atomic_save(agent.state_dict(include_buffer=config.checkpoint_buffer), path)
+        logger.info("%s seed %d: phase 1 done in %.0fs", game, seed, time.time() - t0)
+        if os.path.exists(partial_path):
+            os.remove(partial_path)
+    return agent, path
+
+
+def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
+    from torchrl_options.discovery import discover_options, load_options, save_options
+
+    path = os.path.join(seed_dir, "options.pt")
+    if os.path.exists(path):
+        options, _, metadata = load_options(path, with_meta_control=True)
+        return options, metadata
+    t0 = time.time()
+    demos = _greedy_rollouts(agent, game, config, seed, config.num_demonstrations, config.demo_max_steps)
+    demo_frames = int(sum(t.numel() for t in demos))
+    k = config.options_for(game)
+    result = discover_options(
+        [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated")) for t in demos],
+        num_options=k,
+        num_actions=_num_actions(game, config),
+        num_cells=list(config.options_num_cells),
+        activation="tanh",
+        num_iterations=config.ddo_iterations,
+        batch_size=config.ddo_batch_size,
+        lr=config.ddo_lr,
+        device=config.device,
+        seed=seed,
+        progress=False,
+        return_info=True,
+    )
+    metadata = {
+        "game": game,
+        "num_options": k,
+        "demo_frames": demo_frames,
+        "demo_returns": [float(t["next", "reward"].sum()) for t in demos],
+        "log_likelihood_per_step": result.final_log_likelihood_per_step,
+        "option_duration": result.history[-1].get("option_duration", float("nan")) if result.history else float("nan"),
+        "seconds": time.time() - t0,
+    }
+    options = result.options.cpu()
+    save_options(options, path, metadata=metadata)
+    logger.info("%s seed %d: DDO done, %s", game, seed, metadata)
+    return options, metadata
+
+
+def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> CellResult:
+    """Runs one ``(game, condition, seed)`` cell of the Atari RAM experiment, resuming from its checkpoints.
+
+    Args:
+        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` ``"A"`` or ``"H1"``.
+
+    Keyword Args:
+        config (AtariConfig or dict): the settings.
+        out_dir (str): the experiment's output directory (checkpoints go to ``<out_dir>/<game>/seed<s>/``).
+
+    Returns:
+        The phase-1 then phase-3 episode returns, and cumulative frames (see the module docstring).
+    """
+    if isinstance(config, dict):
+        config = AtariConfig.from_dict(config)
+    if cell.condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {CONDITIONS}, got {cell.condition!r}.")
+    if config.torch_threads:
+        torch.set_num_threads(config.torch_threads)
+    game, seed = cell.setting, cell.seed
+    seed_dir = os.path.join(out_dir, game, f"seed{seed}")
+    os.makedirs(seed_dir, exist_ok=True)
+    t0 = time.time()
+    with _file_lock(os.path.join(seed_dir, ".lock")):
+        agent, _ = _phase1(game, config, seed, seed_dir)
+        options, metadata = _phase2(game, config, seed, seed_dir, agent)
+    n1 = config.phase1_episodes
+    p1_returns = list(agent.log.episode_returns[:n1])
+    p1_frames = list(agent.log.episode_end_frames[:n1])
+    p1_total = p1_frames[-1] if p1_frames else 0
+    total = n1 + config.phase3_episodes
+    partial_path = os.path.join(seed_dir, f"{cell.condition}.partial.pt")
+    phase1_agent = agent
+    if cell.condition == "A":
+        # the baseline continues phase 1's DQN (networks, optimizer, epsilon, replay buffer) with actions only
+        _load_if(agent, partial_path)
+        _train_episodes(agent, total, partial_path, config)
+        returns = list(agent.log.episode_returns[:total])
+        frames = list(agent.log.episode_end_frames[:total])
+        phase3 = {}
+    else:
+        k = metadata["num_options"]
+        agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k)
+        _load_if(agent, partial_path)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config)
+        offset = p1_total + int(metadata["demo_frames"])
+        returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
+        frames = p1_frames + [offset + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
+        phase3 = {"num_options": k}
+        if config.option_frames and seed == 0:
+            try:
+                write_option_frames(phase1_agent, options, game, config, seed,
+                                    os.path.join(out_dir, "option_frames", game))
+            except Exception as err:  # frames are an illustration: never lose a finished cell to them
+                logger.warning("option frames for %s failed: %s", game, err)
+    for a in {id(agent): agent, id(phase1_agent): phase1_agent}.values():
+        _close(a)  # a ParallelEnv's workers would keep the process alive
+    if os.path.exists(partial_path):
+        os.remove(partial_path)
+    info = {"seconds": time.time() - t0, "phase1_frames": p1_total, "demo_frames": metadata.get("demo_frames"), **phase3}
+    with open(os.path.join(seed_dir, f"{cell.condition}.json"), "w") as f:
+        json.dump(info, f)
+    return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames], info=info)
+
+
+def agent_for_frames(game: str, config: AtariConfig, seed: int, seed_dir: str):
+    """The phase-1 agent (whose greedy trajectories the options were discovered from)."""
+    agent = _make_agent(game, config, seed, "actions")
+    _load_if(agent, os.path.join(seed_dir, "phase1.pt"))
+    return agent
+
+
+def write_option_frames(agent, options, game: str, config: AtariConfig, seed: int, out_dir: str, *,
+                        strip_frames: int = 6, fps: float = 15.0) -> list[str]:
+    """Figure 4: for each option, a strip of frames and a short video of where it is the most likely one.
+
+    Rolls out one greedy trajectory of the phase-1 agent with RGB rendering, labels every step with the
+    posterior argmax option (forward-backward under the discovered options, uniform meta-control), and writes
+    for each option its longest segment as ``option<h>.png`` (``strip_frames`` frames side by side) and
+    ``option<h>.avi`` (OpenCV), plus ``labels.json`` with the per-step labels.
+    """
+    import cv2
+
+    from torchrl_options.envs.render import write_video
+    from torchrl_options.inference import forward_backward, most_likely_options
+    from torchrl_options.objectives import DDOLoss
+
+    os.makedirs(out_dir, exist_ok=True)
+    trajs, screens = _greedy_rollouts(agent, game, config, seed, 1, config.option_frames_max_steps, render=True)
+    traj, screens = trajs[0], screens[0]
+    with torch.no_grad():
+        p = DDOLoss(options).log_probabilities(traj.unsqueeze(0))
+        fb = forward_backward(p["log_pi"], p["log_term"], p["log_cont"], p["log_eta"], p["mask"])
+    labels = most_likely_options(fb.u)[0].tolist()
+    written = []
+    k = int(p["log_pi"].shape[-1])
+    for h in range(k):
+        best, start = (0, 0), None
+        for t, lab in enumerate(labels + [-1]):
+            if lab == h and start is None:
+                start = t
+            elif lab != h and start is not None:
+                if t - start > best[1] - best[0]:
+                    best = (start, t)
+                start = None
+        a, b = best
+        if b <= a:
+            continue
+        segment = screens[a:b]
+        picks = np.linspace(0, len(segment) - 1, num=min(strip_frames, len(segment))).round().astype(int)
+        strip = np.concatenate([segment[i] for i in picks], axis=1)
+        png = os.path.join(out_dir, f"option{h}.png")
+        cv2.imwrite(png, cv2.cvtColor(strip, cv2.COLOR_RGB2BGR))
+        write_video(segment, os.path.join(out_dir, f"option{h}.avi"), fps=fps)
+        written += [png, os.path.join(out_dir, f"option{h}.avi")]
+    with open(os.path.join(out_dir, "labels.json"), "w") as f:
+        json.dump({"game": game, "labels": labels, "usage": [labels.count(h) for h in range(k)]}, f)
+    return written
+
+
+# ---------------------------------------------------------------------------------------------- summary
+@dataclass
+class AtariComparison:
+    """Options (``H1``) against the baseline (``A``) in one game, over seeds that finished both.
+
+    ``*_episodes``: mean return over the phase-3 episodes (the paper's "learns faster": area under the curve);
+    ``final_*``: mean over the last ``final_window`` episodes, both at equal episodes. ``*_frames``: mean return
+    of the episodes ending within the first ``F`` frames after phase 1, ``F`` the smaller of the two conditions'
+    phase-3 frame budgets in that seed (``H1``'s demonstration frames count against it). Each is
+    ``(mean, low, high)`` over seeds; ``diff_*`` is the paired difference ``H1 - A``.
+    """
+
+    game: str
+    num_seeds: int
+    phase3_episodes: int
+    baseline_episodes: tuple[float, float, float]
+    options_episodes: tuple[float, float, float]
+    diff_episodes: tuple[float, float, float]
+    baseline_final: tuple[float, float, float]
+    options_final: tuple[float, float, float]
+    diff_final: tuple[float, float, float]
+    baseline_frames: tuple[float, float, float]
+    options_frames: tuple[float, float, float]
+    diff_frames: tuple[float, float, float]
+    equal_frames: float
+    extra: dict = field(default_factory=dict)
+
+
+def _verdict(diff: tuple[float, float, float]) -> str:
+    m, lo, hi = diff
+    if lo > 0:
+        return "options"
+    if hi < 0:
+        return "baseline"
+    return f"options (n.s.)" if m > 0 else ("baseline (n.s.)" if m < 0 else "tie")
+
+
+def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, final_window: int = 100,
+                     confidence: float = 0.95) -> list[AtariComparison]:
+    """Per game, options against baseline at equal episodes and at equal frames (bootstrap intervals over seeds).
+
+    Examples:
+        >>> rows = []
+        >>> for seed in range(3):
+        ...     for cond, gain in (("A", 0.0), ("H1", 1.0)):
+        ...         for ep in range(6):  # 2 phase-1 episodes, 4 phase-3 episodes of 10 frames
+        ...             r = 0.0 if ep < 2 else gain + seed
+        ...             rows.append(dict(setting="Pong", condition=cond, seed=seed, episode=ep, frames=10 * (ep + 1),
+        ...                              **{"return": r}))
+        >>> [c] = atari_comparison(rows, phase1_episodes=2, final_window=2)
+        >>> c.diff_episodes[0], c.diff_frames[0], c.num_seeds
+        (1.0, 1.0, 3)
+    """
+    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
+    data: dict[str, dict[str, dict[int, list[tuple[float, int | None]]]]] = defaultdict(lambda: defaultdict(dict))
+    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+        data[r["setting"]][r["condition"]].setdefault(r["seed"], []).append((r["return"], r.get("frames")))
+    out = []
+    for game, conds in data.items():
+        if "A" not in conds or "H1" not in conds:
+            continue
+        seeds = sorted(set(conds["A"]) & set(conds["H1"]))
+        if not seeds:
+            continue
+        per = defaultdict(list)
+        budgets = []
+        for s in seeds:
+            a, h = conds["A"][s][phase1_episodes:], conds["H1"][s][phase1_episodes:]
+            n = min(len(a), len(h))
+            if n == 0:
+                continue
+            ra, rh = np.array([x[0] for x in a[:n]]), np.array([x[0] for x in h[:n]])
+            w = min(final_window, n)
+            per["A_ep"].append(ra.mean())
+            per["H_ep"].append(rh.mean())
+            per["A_fin"].append(ra[-w:].mean())
+            per["H_fin"].append(rh[-w:].mean())
+            start_a = conds["A"][s][phase1_episodes - 1][1] if phase1_episodes else 0
+            start_h = start_a or 0
+            fa = np.array([x[1] for x in a[:n]], dtype=float) - (start_a or 0)
+            fh = np.array([x[1] for x in h[:n]], dtype=float) - start_h
+            budget = min(fa[-1], fh[-1])
+            budgets.append(budget)
+            # returns of the episodes finished within the common frame budget (at least the first one)
+            per["A_fr"].append(ra[: max(int((fa <= budget).sum()), 1)].mean())
+            per["H_fr"].append(rh[: max(int((fh <= budget).sum()), 1)].mean())
+        if not per["A_ep"]:
+            continue
+
+        def ci(x):
+            return bootstrap_ci(x, confidence=confidence)
+
+        d = lambda k1, k2: ci(np.array(per[k1]) - np.array(per[k2]))  # noqa: E731
+        out.append(
+            AtariComparison(
+                game=game,
+                num_seeds=len(per["A_ep"]),
+                phase3_episodes=min(len(conds["A"][s]) for s in seeds) - phase1_episodes,
+                baseline_episodes=ci(per["A_ep"]),
+                options_episodes=ci(per["H_ep"]),
+                diff_episodes=d("H_ep", "A_ep"),
+                baseline_final=ci(per["A_fin"]),
+                options_final=ci(per["H_fin"]),
+                diff_final=d("H_fin", "A_fin"),
+                baseline_frames=ci(per["A_fr"]),
+                options_frames=ci(per["H_fr"]),
+                diff_frames=d("H_fr", "A_fr"),
+                equal_frames=float(np.mean(budgets)),
+            )
+        )
+    return out
+
+
+def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_window: int = 100,
+                           header: str | None = None) -> str:
+    """The per-game table of :func:`atari_comparison` in Markdown, with a verdict per comparison and a count."""
+
+    def f(x):
+        return f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"
+
+    lines = [header + "\n"] if header else []
+    lines += [
+        "Returns of phase 3 (after the shared phase 1), mean over seeds with 95% bootstrap intervals. "
+        "`H1`: DQN over actions + DDO options from a reset Q-function; `A`: the phase-1 DQN continued with actions "
+        "only. Verdict: whose interval of the paired difference H1 - A lies above (or below) 0; *n.s.* when it "
+        "contains 0.\n",
+        "| game | seeds | phase-3 episodes | A, mean over episodes | H1, mean over episodes | H1 - A | better "
+        f"(equal episodes) | A, last {final_window} | H1, last {final_window} | H1 - A | "
+        "equal frames (phase 3) | A at equal frames | H1 at equal frames | H1 - A | better (equal frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    ahead = 0
+    for c in comparisons:
+        ahead += c.diff_episodes[0] > 0
+        lines.append(
+            f"| {c.game} | {c.num_seeds} | {c.phase3_episodes} | {f(c.baseline_episodes)} | {f(c.options_episodes)} | "
+            f"{f(c.diff_episodes)} | {_verdict(c.diff_episodes)} | {f(c.baseline_final)} | {f(c.options_final)} | "
+            f"{f(c.diff_final)} | {c.equal_frames:.0f} | {f(c.baseline_frames)} | {f(c.options_frames)} | "
+            f"{f(c.diff_frames)} | {_verdict(c.diff_frames)} |"
+        )
+    lines.append("")
+    lines.append(
+        f"Options ahead of the baseline at equal episodes (mean over phase 3) in {ahead} of {len(comparisons)} games."
+    )
+    return "\n".join(lines) + "\n"
