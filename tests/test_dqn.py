@@ -89,3 +89,22 @@ def test_batches_without_a_finished_decision():
     assert 0 < len(agent.replay_buffer) < 16
     returns = agent.evaluate(3, 2 * MAX_STEPS)  # an unbatched env: episodes follow each other
     assert 2 <= len(returns) <= 3 and set(returns) <= {0.0, 1.0}
+
+
+def test_callback_stops_training_and_checkpoints_do_not_alias(tmp_path):
+    cfg = config("actions", total_frames=10_000, learning_starts=8, batch_size=8)
+    agent = OptionsDQN(corridor, cfg)
+    calls = []
+
+    def stop_after_three_batches(agent_, batch):
+        calls.append(batch.numel())
+        return len(calls) == 3
+
+    agent.train(callback=stop_after_three_batches)
+    assert len(calls) == 3 and agent.frames == 3 * cfg.frames_per_batch
+    state = agent.state_dict()
+    resumed = OptionsDQN(corridor, cfg)
+    resumed.load_state_dict(state)
+    resumed.train(64)
+    # training after a load appends to the agent's own log, not to the checkpoint's lists
+    assert len(state["log"]["episode_end_frames"]) == len(agent.log.episode_end_frames)

@@ -246,7 +246,8 @@ class OptionsDQN:
     ) -> TrainingLog:
         """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
 
-        ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints).
+        ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints); when
+        it returns ``True`` training stops there (e.g. after a number of episodes).
         Can be called again to continue training, also after :meth:`load_state_dict`.
         """
         config = self.config
@@ -278,8 +279,8 @@ class OptionsDQN:
                     for _ in range(config.updates_per_batch):
                         self._update()
                 collector.update_policy_weights_()
-                if callback is not None:
-                    callback(self, batch)
+                if callback is not None and callback(self, batch):
+                    break
         finally:
             collector.shutdown(close_env=False)
         return self.log
@@ -364,7 +365,7 @@ class OptionsDQN:
         self.exploration.load_state_dict(state["exploration"])
         self.frames = state["frames"]
         self.gradient_steps = state["gradient_steps"]
-        self.log = TrainingLog(**state["log"])
+        self.log = TrainingLog(**{k: list(v) for k, v in state["log"].items()})
         if "replay_buffer" in state:
             self.replay_buffer.load_state_dict(state["replay_buffer"])
 

@@ -155,8 +155,6 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
 
 
 # ---------------------------------------------------------------------------------------------- pipeline
-class _EnoughEpisodes(Exception):
-    pass
 
 
 def _env_factory(game: str, config: AtariConfig, seed: int, render: bool = False):
@@ -202,56 +200,9 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         seed=seed,
         device=config.device,
     )
-    agent = OptionsDQN(
+    return OptionsDQN(
         _env_factory(game, config, seed), dqn_config, options=options, num_options=num_options, q_network=q_net
     )
-    if mode != "actions":
-        agent.smdp = _SkipEmptyDecisions(agent.smdp)
-        agent.replay_buffer = _BufferSkippingNothing(agent.replay_buffer)
-    return agent
-
-
-class _NothingToAdd:
-    """Stands for an empty batch of SMDP transitions (see :class:`_SkipEmptyDecisions`)."""
-
-    def reshape(self, *args, **kwargs):
-        return self
-
-
-_NOTHING = _NothingToAdd()
-
-
-class _SkipEmptyDecisions:
-    """Work-around: ``OptionsDQN.train`` calls ``smdp(batch).reshape(-1)`` and ``replay_buffer.extend`` on every
-    collector batch, and tensordict cannot ``reshape(-1)`` an empty tensordict with non-scalar entries: a batch in
-    which no decision completes (one option running through all of it) crashed training. This wraps the SMDP
-    transform and the buffer so that such a batch adds nothing."""
-
-    def __init__(self, smdp):
-        self._smdp = smdp
-
-    def __call__(self, batch):
-        out = self._smdp(batch)
-        return out if out.numel() else _NOTHING
-
-    def __getattr__(self, name):
-        return getattr(self._smdp, name)
-
-
-class _BufferSkippingNothing:
-    def __init__(self, buffer):
-        self._buffer = buffer
-
-    def extend(self, data):
-        if data is _NOTHING:
-            return None
-        return self._buffer.extend(data)
-
-    def __len__(self) -> int:
-        return len(self._buffer)
-
-    def __getattr__(self, name):
-        return getattr(self._buffer, name)
 
 
 def _close(agent) -> None:
@@ -277,15 +228,11 @@ def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariCo
         if config.checkpoint_every and n - last[0] >= config.checkpoint_every:
             _atomic_save(agent.state_dict(), partial_path)
             last[0] = n
-        if n >= num_episodes:
-            raise _EnoughEpisodes
+        return n >= num_episodes
 
     if len(agent.log.episode_returns) >= num_episodes:
         return
-    try:
-        agent.train(total_frames=10**12, callback=callback)
-    except _EnoughEpisodes:
-        pass
+    agent.train(total_frames=10**12, callback=callback)
 
 
 def _load_if(agent, path: str) -> bool:

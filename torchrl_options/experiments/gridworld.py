@@ -54,10 +54,6 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
-class _EnoughEpisodes(Exception):
-    """Raised from the training callback to stop the collector once enough episodes have finished."""
-
-
 def _env_kwargs(env_cfg: Mapping[str, Any]) -> dict[str, Any]:
     kwargs = {k: v for k, v in dict(env_cfg).items() if v is not None}
     for key in ("start", "goal"):
@@ -284,20 +280,16 @@ def train_episodes(
     while len(agent.log.episode_returns) < num_episodes:
         target = min(len(agent.log.episode_returns) + checkpoint_every, num_episodes)
 
-        def stop(agent_: OptionsDQN, _batch) -> None:
+        def stop(agent_: OptionsDQN, _batch) -> bool:
             if bar is not None:
                 bar.update(min(len(agent_.log.episode_returns), num_episodes) - bar.n)
                 recent = agent_.log.episode_returns[-50:]
                 if recent:
                     bar.set_postfix(ret=f"{sum(recent) / len(recent):.2f}")
-            if len(agent_.log.episode_returns) >= target:
-                raise _EnoughEpisodes
+            return len(agent_.log.episode_returns) >= target
 
-        try:
-            # the budget is only a bound: the callback stops at the target number of episodes
-            agent.train(total_frames=10**12, callback=stop)
-        except _EnoughEpisodes:
-            pass
+        # the budget is only a bound: the callback stops at the target number of episodes
+        agent.train(total_frames=10**12, callback=stop)
         if checkpoint is not None:
             _atomic_save(agent.state_dict(include_buffer=include_buffer), checkpoint)
         if on_episodes is not None:
