@@ -8,30 +8,22 @@ summary table.
     python recipes/four_rooms.py scale=paper     # 15 seeds x 5000 episodes, supervised and exploration
     python recipes/four_rooms.py backend=local num_workers=8 logger.backend=tensorboard
 """
-import logging
-
 import hydra
-import torch
-from omegaconf import DictConfig, OmegaConf
 
-from torchrl_options.experiments.gridworld import run_gridworld_recipe
+from torchrl_options.experiments.gridworld import run_gridworld_script
 
 
-def run(cfg: DictConfig) -> str | None:
-    torch.set_num_threads(1)  # tiny networks: threads only add overhead
-    summary = run_gridworld_recipe(OmegaConf.to_container(cfg, resolve=True), "Four rooms")
+def run(cfg, quiet: bool = False) -> str | None:
+    summary = run_gridworld_script(cfg, "Four rooms", quiet=quiet)
     if summary is not None:
         print(summary)
-        print(f"results, summary.md, curves.png and pictures/ in {cfg.out_dir}")
+        print(f"results.csv, summary.md, curves.png and pictures/ in {cfg.out_dir}")
     return summary
 
 
 @hydra.main(config_path="config", config_name="four_rooms", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    if not cfg.verbose:  # progress bars and the summary only; verbose=true adds the per-batch DQN/DDO logs
-        for name in ("torchrl", "torchrl_options"):
-            logging.getLogger(name).setLevel(logging.WARNING)
-    run(cfg)
+def main(cfg) -> None:
+    run(cfg, quiet=True)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ __all__ = [
     "cell_dir",
     "reach_table",
     "run_gridworld_recipe",
+    "run_gridworld_script",
     "write_option_pictures",
 ]
 
@@ -134,6 +135,18 @@ def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
 
 
 # ------------------------------------------------------------------------------------------------ discovery
+def _discovery_kwargs(discovery: Mapping[str, Any]) -> dict[str, Any]:
+    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery."""
+    return dict(
+        num_actions=4,
+        num_cells=discovery.get("num_cells", 2),
+        activation=discovery.get("activation", "tanh"),
+        init=discovery.get("init", "random"),
+        batch_size=discovery.get("batch_size"),
+        lr=discovery.get("lr", 1e-2),
+    )
+
+
 def discover_cached(
     trajectories: TensorDict | Callable[[], TensorDict],
     path: str | os.PathLike,
@@ -154,20 +167,9 @@ def discover_cached(
         return load_options(path)
     data = trajectories() if callable(trajectories) else trajectories
     result = discover_options(
-        data,
-        num_options,
-        meta_control=meta_control,
-        num_actions=4,
-        num_cells=discovery.get("num_cells", 2),
-        activation=discovery.get("activation", "tanh"),
-        init=discovery.get("init", "random"),
-        num_iterations=discovery["num_iterations"],
-        batch_size=discovery.get("batch_size"),
-        lr=discovery.get("lr", 1e-2),
-        seed=seed,
-        progress=progress,
-        return_info=True,
-    )
+        data, num_options, meta_control=meta_control, num_iterations=discovery["num_iterations"], seed=seed,
+        progress=progress, return_info=True, **_discovery_kwargs(discovery),
+    )  # fmt: skip
     final = result.history[-1] if result.history else {}
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     save_options(
@@ -194,21 +196,11 @@ def discover_hierarchy_cached(
         logger.info("hierarchy: loading %s", path)
         return load_hierarchy(path)
     data = trajectories() if callable(trajectories) else trajectories
+    upper = discovery.get("upper_level_iterations", discovery["num_iterations"])
     hierarchy = discover_hierarchy(
-        data,
-        num_options,
-        meta_control=meta_control,
-        num_actions=4,
-        num_cells=discovery.get("num_cells", 2),
-        activation=discovery.get("activation", "tanh"),
-        init=discovery.get("init", "random"),
-        num_iterations=[discovery["num_iterations"], discovery.get("upper_level_iterations", discovery["num_iterations"])]
-        + [discovery.get("upper_level_iterations", discovery["num_iterations"])] * (len(num_options) - 2),
-        batch_size=discovery.get("batch_size"),
-        lr=discovery.get("lr", 1e-2),
-        seed=seed,
-        progress=progress,
-    )
+        data, num_options, meta_control=meta_control, num_iterations=[discovery["num_iterations"]]
+        + [upper] * (len(num_options) - 1), seed=seed, progress=progress, **_discovery_kwargs(discovery),
+    )  # fmt: skip
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     save_hierarchy(hierarchy, tmp, metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed})
     os.replace(tmp, path)
@@ -512,3 +504,26 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
             )  # fmt: skip
             written.append(target)
     return written
+
+
+def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | None:
+    """What a GridWorld recipe script does with its Hydra config: one torch thread (tiny networks), then the
+    recipe. Returns the summary table (``None`` when the run stopped early), for the script to print.
+
+    Args:
+        cfg: the recipe's config (an OmegaConf ``DictConfig`` or a plain mapping).
+        title (str): the summary's title.
+
+    Keyword Args:
+        quiet (bool): keep the console to progress bars and the summary unless ``cfg.verbose`` (the per-batch
+            DQN/DDO logs otherwise).
+    """
+    if not isinstance(cfg, Mapping) or type(cfg).__name__ == "DictConfig":
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    if quiet and not cfg.get("verbose", False):
+        for name in ("torchrl", "torchrl_options"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    torch.set_num_threads(1)
+    return run_gridworld_recipe(cfg, title)

@@ -1,7 +1,6 @@
 """HierarchicalDDOLoss: DDO for level d+1 of a hierarchy, over the fixed options of levels 1..d."""
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -13,7 +12,7 @@ from torch import nn
 from torchrl.objectives.common import LossModule
 
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
-from torchrl_options.objectives.ddo import prepare_trajectories
+from torchrl_options.objectives.ddo import meta_control_log_probs, prepare_trajectories, terminal_flags
 from torchrl_options.hierarchy.inference import BACKENDS, hierarchical_forward_backward
 
 __all__ = ["HierarchicalDDOLoss"]
@@ -277,22 +276,8 @@ class HierarchicalDDOLoss(LossModule):
             if top:
                 psi_next = torch.sigmoid(nxt)
         K = log_pi[-1].shape[2]
-        if self.meta_control is None:
-            log_eta = torch.full((B, T, K), -math.log(K), dtype=log_pi[-1].dtype, device=log_pi[-1].device)
-        else:
-            meta = self.meta_control(tensordict.select(*self.meta_control.in_keys)).get(keys.meta_logits)
-            if meta.shape != (B, T, K):
-                raise ValueError(
-                    f"{keys.meta_logits!r} must have shape [B, T, K] = {(B, T, K)}: the meta-control must choose among "
-                    f"the {K} options of level {self.level}, got {tuple(meta.shape)}."
-                )
-            log_eta = meta.log_softmax(-1)
-        terminal = torch.zeros(B, dtype=torch.bool, device=mask.device)
-        if self.terminal_at_end:
-            flag = tensordict.get(keys.terminal, None)
-            if flag is not None:
-                flag = flag.reshape(B, T).bool()
-                terminal = flag.gather(1, (mask.sum(1) - 1).unsqueeze(1)).squeeze(1)
+        log_eta = meta_control_log_probs(self.meta_control, tensordict, K, keys.meta_logits, like=log_pi[-1])
+        terminal = terminal_flags(tensordict, keys.terminal, mask, self.terminal_at_end)
         return dict(
             action=torch.where(mask, action, 0).long(),
             log_pi=log_pi,

@@ -12,7 +12,7 @@ from torchrl.objectives.common import LossModule
 
 from torchrl_options.inference import forward_backward
 
-__all__ = ["DDOLoss", "option_log_probs", "prepare_trajectories"]
+__all__ = ["DDOLoss", "meta_control_log_probs", "option_log_probs", "prepare_trajectories", "terminal_flags"]
 
 
 def _key_name(key: NestedKey) -> str:
@@ -195,6 +195,41 @@ def prepare_trajectories(
             valid = mask.view(B, T, *([1] * (x.ndim - 2)))
             source.set(key, torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)))
     return tensordict, mask, current, following
+
+
+def meta_control_log_probs(
+    meta_control: TensorDictModuleBase | None,
+    tensordict: TensorDictBase,
+    num_options: int,
+    meta_logits_key: NestedKey,
+    *,
+    like: torch.Tensor,
+) -> torch.Tensor:
+    """``log eta(h | s_t)`` ``[B, T, K]``: uniform when ``meta_control`` is ``None``, else its log-softmax.
+
+    Raises:
+        ValueError: naming ``meta_logits_key`` when the meta-control does not choose among ``num_options``.
+    """
+    B, T = tensordict.batch_size
+    if meta_control is None:
+        return torch.full((B, T, num_options), -math.log(num_options), dtype=like.dtype, device=like.device)
+    meta = meta_control(tensordict.select(*meta_control.in_keys)).get(meta_logits_key)
+    if meta.shape != (B, T, num_options):
+        raise ValueError(
+            f"{meta_logits_key!r} must have shape [B, T, K] = {(B, T, num_options)}: the meta-control must choose "
+            f"among the {num_options} options, got {tuple(meta.shape)}."
+        )
+    return meta.log_softmax(-1)
+
+
+def terminal_flags(tensordict: TensorDictBase, terminal_key: NestedKey, mask: torch.Tensor, enabled: bool) -> torch.Tensor:
+    """``[B]`` bool: the ``terminal_key`` flag at each row's last valid step (all False when disabled or absent)."""
+    B, T = mask.shape
+    terminal = torch.zeros(B, dtype=torch.bool, device=mask.device)
+    flag = tensordict.get(terminal_key, None) if enabled else None
+    if flag is not None:
+        terminal = flag.reshape(B, T).bool().gather(1, (mask.sum(1) - 1).unsqueeze(1)).squeeze(1)
+    return terminal
 
 
 class DDOLoss(LossModule):
@@ -380,23 +415,8 @@ class DDOLoss(LossModule):
             )
         log_term = torch.nn.functional.logsigmoid(term_logits)
         log_cont = torch.nn.functional.logsigmoid(-term_logits)
-        if self.meta_control is None:
-            log_eta = torch.full_like(log_pi, -math.log(K))
-        else:
-            meta = self.meta_control(tensordict.select(*self.meta_control.in_keys)).get(keys.meta_logits)
-            if meta.shape != (B, T, K):
-                raise ValueError(
-                    f"{keys.meta_logits!r} must have shape [B, T, K] = {(B, T, K)}: the meta-control must choose among "
-                    f"the {K} options, got {tuple(meta.shape)}."
-                )
-            log_eta = meta.log_softmax(-1)
-        terminal = torch.zeros(B, dtype=torch.bool, device=log_pi.device)
-        if self.terminal_at_end:
-            flag = tensordict.get(keys.terminal, None)
-            if flag is not None:
-                flag = flag.reshape(B, T).bool()
-                last = mask.sum(1) - 1
-                terminal = flag.gather(1, last.unsqueeze(1)).squeeze(1)
+        log_eta = meta_control_log_probs(self.meta_control, tensordict, K, keys.meta_logits, like=log_pi)
+        terminal = terminal_flags(tensordict, keys.terminal, mask, self.terminal_at_end)
         return dict(
             log_pi=log_pi,
             log_term=log_term,
