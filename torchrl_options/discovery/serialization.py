@@ -117,6 +117,15 @@ def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, ma
 
     Raises:
         ValueError: if the file is not an options file of this package.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from torchrl_options import MetaControlMLP, OptionsMLP, save_options
+        >>> path = os.path.join(tempfile.mkdtemp(), "options.pt")
+        >>> save_options(OptionsMLP(4, 3, 2), path, meta_control=MetaControlMLP(4, 2), metadata={"K": 2})
+        >>> options, meta, metadata = load_options(path, with_meta_control=True)
+        >>> type(meta).__name__, metadata
+        ('MetaControlMLP', {'K': 2})
     """
     payload = torch.load(path, map_location=map_location, weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:

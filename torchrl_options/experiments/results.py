@@ -184,6 +184,14 @@ def summarize(
     ``smooth_window`` moving average does. Seeds that never reach it count with their total number of episodes
     (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are percentile bootstrap
     intervals over seeds.
+
+    Examples:
+        >>> rows = [{"setting": "s", "condition": c, "seed": 0, "episode": i, "return": float(i >= n)}
+        ...         for c, n in (("A", 6), ("H1u", 2)) for i in range(10)]
+        >>> [(x.condition, x.episodes_to_baseline[0]) for x in summarize(rows, final_window=2, smooth_window=2)]
+        [('A', 8.0), ('H1u', 4.0)]
+        >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
+        | s | A | 1 | 10 | 1.000 [1.000, 1.000] | 8 [8, 8] | 1/1 |
     """
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))

@@ -215,6 +215,15 @@ def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata:
 
     Raises:
         ValueError: if the file is not a hierarchy file of this package.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from torchrl_options import OptionsMLP
+        >>> path = os.path.join(tempfile.mkdtemp(), "h.pt")
+        >>> save_hierarchy(OptionHierarchy(4, [OptionsMLP(2, 4, 3)]), path, metadata={"seed": 0})
+        >>> hierarchy, metadata = load_hierarchy(path, with_metadata=True)
+        >>> hierarchy.num_options, metadata
+        ([3], {'seed': 0})
     """
     payload = torch.load(path, map_location=map_location, weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:

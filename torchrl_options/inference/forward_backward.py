@@ -300,8 +300,13 @@ def resolve_backend(backend: str, log_pi: Tensor) -> str:
     """The backend that ``forward_backward(..., backend=backend)`` runs for inputs like ``log_pi``.
 
     ``"auto"``: ``"triton"`` for CUDA tensors when Triton is available and ``K <= 128``; otherwise ``"chunked"``
-    when there are at least 16 steps and at most 24 options; otherwise ``"reference"``. An explicit ``"triton"`` without CUDA and Triton
-    raises a ``ValueError``.
+    when there are at least 16 steps and at most 24 options; otherwise ``"reference"``. An explicit ``"triton"``
+    without CUDA and Triton raises a ``ValueError``.
+
+    Examples:
+        >>> import torch
+        >>> resolve_backend("auto", torch.zeros(2, 100, 4)), resolve_backend("auto", torch.zeros(2, 100, 32))
+        ('chunked', 'reference')
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")

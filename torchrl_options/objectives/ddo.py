@@ -209,6 +209,13 @@ def meta_control_log_probs(
 
     Raises:
         ValueError: naming ``meta_logits_key`` when the meta-control does not choose among ``num_options``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.zeros(2, 3, 4)}, [2, 3])
+        >>> meta_control_log_probs(None, td, 4, "meta_logits", like=torch.zeros(())).exp()[0, 0]
+        tensor([0.2500, 0.2500, 0.2500, 0.2500])
     """
     B, T = tensordict.batch_size
     if meta_control is None:
@@ -223,7 +230,16 @@ def meta_control_log_probs(
 
 
 def terminal_flags(tensordict: TensorDictBase, terminal_key: NestedKey, mask: torch.Tensor, enabled: bool) -> torch.Tensor:
-    """``[B]`` bool: the ``terminal_key`` flag at each row's last valid step (all False when disabled or absent)."""
+    """``[B]`` bool: the ``terminal_key`` flag at each row's last valid step (all False when disabled or absent).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> mask = torch.tensor([[True, True, True], [True, True, False]])
+        >>> td = TensorDict({("next", "terminated"): torch.tensor([[0, 0, 1], [0, 1, 0]]).bool()}, [2, 3])
+        >>> terminal_flags(td, ("next", "terminated"), mask, enabled=True)
+        tensor([True, True])
+    """
     B, T = mask.shape
     terminal = torch.zeros(B, dtype=torch.bool, device=mask.device)
     flag = tensordict.get(terminal_key, None) if enabled else None
