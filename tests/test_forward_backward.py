@@ -1,10 +1,10 @@
 """The reference E-step against exact enumeration, its gradient identities, stability and bad input."""
-import itertools
 import math
 
 import pytest
 import torch
 
+from _enumeration import latent_sequences
 from torchrl_options import forward_backward
 
 
@@ -19,19 +19,7 @@ def _random_inputs(B, T, K, dtype=torch.float64, seed=0):
 def _enumerate(log_pi, log_term, log_cont, log_eta, L, terminal):
     """Brute force over every latent sequence (b_0 = 1; a new option may be the same one)."""
     K = log_pi.shape[-1]
-    joint = []
-    for hs in itertools.product(range(K), repeat=L):
-        for bs in itertools.product((0, 1), repeat=L - 1):
-            b = (1,) + bs
-            if any(b[t] == 0 and hs[t] != hs[t - 1] for t in range(1, L)):
-                continue
-            lp = log_eta[0, hs[0]] + log_pi[0, hs[0]]
-            for t in range(1, L):
-                step = log_term[t - 1, hs[t - 1]] + log_eta[t, hs[t]] if b[t] else log_cont[t - 1, hs[t - 1]]
-                lp = lp + step + log_pi[t, hs[t]]
-            if terminal:
-                lp = lp + log_term[L - 1, hs[L - 1]]
-            joint.append((lp, hs, b))
+    joint = list(latent_sequences(log_pi, log_term, log_cont, log_eta, L, terminal))
     logz = torch.logsumexp(torch.stack([j[0] for j in joint]), 0)
     u = torch.zeros(L, K, dtype=log_pi.dtype)
     v, w = torch.zeros_like(u), torch.zeros_like(u)

@@ -1,29 +1,13 @@
 """Viterbi decoding against brute force, and the posterior argmax."""
-import itertools
-
 import pytest
 import torch
 
+from _enumeration import latent_sequences
 from torchrl_options import forward_backward, most_likely_options, viterbi
 
 
 def _brute_viterbi(log_pi, log_term, log_cont, log_eta, L, terminal):
-    K = log_pi.shape[-1]
-    best = None
-    for hs in itertools.product(range(K), repeat=L):
-        for bs in itertools.product((0, 1), repeat=L - 1):
-            b = (1,) + bs
-            if any(b[t] == 0 and hs[t] != hs[t - 1] for t in range(1, L)):
-                continue
-            lp = log_eta[0, hs[0]] + log_pi[0, hs[0]]
-            for t in range(1, L):
-                step = log_term[t - 1, hs[t - 1]] + log_eta[t, hs[t]] if b[t] else log_cont[t - 1, hs[t - 1]]
-                lp = lp + step + log_pi[t, hs[t]]
-            if terminal:
-                lp = lp + log_term[L - 1, hs[L - 1]]
-            if best is None or lp > best[0]:
-                best = (lp, hs, b)
-    return best
+    return max(latent_sequences(log_pi, log_term, log_cont, log_eta, L, terminal), key=lambda j: float(j[0]))
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -112,6 +112,62 @@ def _split_slices(flat: TensorDictBase, trajectory_key: NestedKey) -> list[Tenso
     return [flat[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def minibatch(data: TensorDictBase, batch_size: int | None, generator: torch.Generator) -> TensorDictBase:
+    """``batch_size`` trajectories drawn without replacement (all of them when ``batch_size`` is ``None``)."""
+    B = data.batch_size[0]
+    if batch_size is None or batch_size >= B:
+        return data
+    return data[torch.randperm(B, generator=generator)[:batch_size].to(data.device)]
+
+
+def fit_ddo(
+    loss_module: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    next_batch: Callable[[int], TensorDictBase],
+    num_iterations: int,
+    *,
+    desc: str = "DDO",
+    progress: bool = True,
+    log_every: int = 50,
+    set_diagnostics: Callable[[bool], None] | None = None,
+) -> list[dict]:
+    """The gradient loop of discovery, one- or multi-level: ``num_iterations`` steps on ``next_batch(it)``.
+
+    Returns per iteration the loss module's outputs as floats. Diagnostics are logged every ``log_every``
+    iterations; ``set_diagnostics(full)`` is told before each step whether this one is logged (a loss whose full
+    diagnostics cost extra can skip them otherwise).
+    """
+    records: list[dict] = []
+    iterator = range(num_iterations)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(iterator, desc=desc, unit="it")
+        iterator = bar
+    for it in iterator:
+        batch = next_batch(it)
+        full = bool(log_every) and (it % log_every == 0 or it == num_iterations - 1)
+        if set_diagnostics is not None:
+            set_diagnostics(full)
+        out = loss_module(batch)
+        optimizer.zero_grad()
+        out["loss_ddo"].backward()
+        optimizer.step()
+        record = {k: float(v.detach()) for k, v in out.items()}
+        records.append(record)
+        if bar is not None:
+            postfix = {"ll_step": f"{record['log_likelihood_per_step']:.4f}"}
+            if "option_duration" in record:
+                postfix["dur"] = f"{record['option_duration']:.1f}"
+            bar.set_postfix(postfix)
+        if full:
+            logger.info("%s iteration %d: %s", desc, it, {k: round(v, 4) for k, v in record.items()})
+    if bar is not None:
+        bar.close()
+    return records
+
+
 def _infer_in_features(td: TensorDictBase, obs_keys: Sequence[NestedKey]) -> int:
     total = 0
     for key in obs_keys:
@@ -268,38 +324,12 @@ def discover_options(
     else:
         opt = optimizer(params, lr=lr)
 
-    B = data.batch_size[0]
-    history: list[dict] = []
-    iterator = range(num_iterations)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def next_batch(it: int) -> TensorDictBase:
+        if buffer is not None and it > 0:
+            return as_trajectory_batch(buffer.sample(), trajectory_key=trajectory_key).to(device)
+        return data if buffer is not None else minibatch(data, batch_size, generator)
 
-        bar = tqdm(iterator, desc="DDO", unit="it")
-        iterator = bar
-    for it in iterator:
-        if buffer is not None:
-            if it > 0:
-                batch = as_trajectory_batch(buffer.sample(), trajectory_key=trajectory_key).to(device)
-            else:
-                batch = data
-        elif batch_size is None or batch_size >= B:
-            batch = data
-        else:
-            idx = torch.randperm(B, generator=generator)[:batch_size].to(device)
-            batch = data[idx]
-        out = loss_module(batch)
-        opt.zero_grad()
-        out["loss_ddo"].backward()
-        opt.step()
-        record = {k: float(v.detach()) for k, v in out.items()}
-        history.append(record)
-        if bar is not None:
-            bar.set_postfix(ll_step=f"{record['log_likelihood_per_step']:.4f}", dur=f"{record['option_duration']:.1f}")
-        if log_every and (it % log_every == 0 or it == num_iterations - 1):
-            logger.info("DDO iteration %d: %s", it, {k: round(v, 4) for k, v in record.items()})
-    if bar is not None:
-        bar.close()
+    history = fit_ddo(loss_module, opt, next_batch, num_iterations, desc="DDO", progress=progress, log_every=log_every)
     if return_info:
         return DiscoveryResult(options=options, meta_control=meta_module, history=history)
     return options

@@ -9,7 +9,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-from torchrl_options.discovery.discover import _infer_in_features, as_trajectory_batch, discover_options
+from torchrl_options.discovery.discover import (
+    _infer_in_features,
+    as_trajectory_batch,
+    discover_options,
+    fit_ddo,
+    minibatch,
+)
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
@@ -203,33 +209,12 @@ def discover_hierarchy(
 
 
 def _train(loss_module, opt, data, num_iterations, batch_size, generator, progress, log_every, level) -> list[dict]:
-    B = data.batch_size[0]
-    records: list[dict] = []
-    iterator = range(num_iterations)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(iterator, desc=f"DDO level {level}", unit="it")
-        iterator = bar
-    for it in iterator:
-        if batch_size is None or batch_size >= B:
-            batch = data
-        else:
-            batch = data[torch.randperm(B, generator=generator)[:batch_size].to(data.device)]
-        full = bool(log_every) and (it % log_every == 0 or it == num_iterations - 1)
+    def set_diagnostics(full: bool) -> None:
         loss_module.diagnostics = full
-        out = loss_module(batch)
-        opt.zero_grad()
-        out["loss_ddo"].backward()
-        opt.step()
-        record = {k: float(v.detach()) for k, v in out.items()}
-        records.append(record)
-        if bar is not None:
-            bar.set_postfix(ll_step=f"{record['log_likelihood_per_step']:.4f}")
-        if full:
-            logger.info("DDO level %d iteration %d: %s", level, it, {k: round(v, 4) for k, v in record.items()})
-    if bar is not None:
-        bar.close()
+
+    records = fit_ddo(
+        loss_module, opt, lambda it: minibatch(data, batch_size, generator), num_iterations,
+        desc=f"DDO level {level}", progress=progress, log_every=log_every, set_diagnostics=set_diagnostics,
+    )  # fmt: skip
     loss_module.diagnostics = True
     return records

@@ -36,6 +36,11 @@ def as_key_list(keys: NestedKey | Sequence[NestedKey], name: str) -> list[Nested
     return keys
 
 
+def key_to_config(key: NestedKey) -> str | list[str]:
+    """A key as plain data for a module's ``config``: nested keys (tuples) become lists."""
+    return list(key) if isinstance(key, tuple) else key
+
+
 def hidden_sizes(num_cells: int | Sequence[int]) -> list[int]:
     if isinstance(num_cells, int):
         return [num_cells]

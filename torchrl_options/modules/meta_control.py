@@ -13,7 +13,13 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.modules import MLP
 
-from torchrl_options.modules._features import activation_class, as_key_list, hidden_sizes, ObservationModule
+from torchrl_options.modules._features import (
+    activation_class,
+    as_key_list,
+    hidden_sizes,
+    key_to_config,
+    ObservationModule,
+)
 
 __all__ = ["MetaControlMLP", "UniformMetaControl"]
 
@@ -62,8 +68,8 @@ class MetaControlMLP(ObservationModule):
             num_options=num_options,
             num_cells=cells,
             activation=activation,
-            in_keys=[list(k) if isinstance(k, tuple) else k for k in self.in_keys],
-            out_key=list(out_key) if isinstance(out_key, tuple) else out_key,
+            in_keys=[key_to_config(k) for k in self.in_keys],
+            out_key=key_to_config(out_key),
         )
         self.net = MLP(
             in_features=in_features, out_features=num_options, num_cells=cells, activation_class=activation_class(activation)
@@ -109,8 +115,8 @@ class UniformMetaControl(ObservationModule):
         self.num_options = num_options
         self.config = dict(
             num_options=num_options,
-            in_keys=[list(k) if isinstance(k, tuple) else k for k in self.in_keys],
-            out_key=list(out_key) if isinstance(out_key, tuple) else out_key,
+            in_keys=[key_to_config(k) for k in self.in_keys],
+            out_key=key_to_config(out_key),
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -18,7 +18,13 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP, MultiAgentMLP
 
-from torchrl_options.modules._features import activation_class, as_key_list, hidden_sizes, ObservationModule
+from torchrl_options.modules._features import (
+    activation_class,
+    as_key_list,
+    hidden_sizes,
+    key_to_config,
+    ObservationModule,
+)
 
 __all__ = ["OptionsMLP", "GaussianOptionsMLP"]
 
@@ -108,8 +114,8 @@ class OptionsMLP(ObservationModule):
             num_cells=cells,
             activation=activation,
             architecture=architecture,
-            in_keys=[list(k) if isinstance(k, tuple) else k for k in self.in_keys],
-            out_keys=[list(k) if isinstance(k, tuple) else k for k in self.out_keys],
+            in_keys=[key_to_config(k) for k in self.in_keys],
+            out_keys=[key_to_config(k) for k in self.out_keys],
         )
         if architecture == "separate":
             self.control = _ensemble(in_features, num_actions, num_options, cells, activation)
@@ -214,8 +220,8 @@ class GaussianOptionsMLP(ObservationModule):
             init_scale=init_scale,
             min_scale=min_scale,
             state_dependent_scale=state_dependent_scale,
-            in_keys=[list(k) if isinstance(k, tuple) else k for k in self.in_keys],
-            out_keys=[list(k) if isinstance(k, tuple) else k for k in self.out_keys],
+            in_keys=[key_to_config(k) for k in self.in_keys],
+            out_keys=[key_to_config(k) for k in self.out_keys],
         )
         out = 2 * action_dim if state_dependent_scale else action_dim
         self.control = _ensemble(in_features, out, num_options, cells, activation)
