@@ -75,3 +75,12 @@ def test_greedy_trajectories_stop_at_the_goal():
     mask = data["collector", "mask"]
     reward = data["next", "reward"].squeeze(-1)
     assert bool((reward * mask).sum(-1).eq(1).all())  # each row: one episode, ending at its goal
+
+
+def test_condition_may_override_the_number_of_episodes(tmp_path):
+    from torchrl_options.experiments.gridworld import run_gridworld_cell
+
+    cfg = _cfg(tmp_path, episodes=4)
+    cfg["conditions"] = dict(A=dict(mode="actions", episodes=7), AO=dict(mode="both", meta_control="uniform"))
+    assert len(run_gridworld_cell(Cell("supervised", "A", 0), cfg).returns) == 7
+    assert len(run_gridworld_cell(Cell("supervised", "AO", 0), cfg).returns) == 4

@@ -363,8 +363,8 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     ``cfg`` keys: ``out_dir``, ``env`` (GridWorldEnv arguments), ``num_envs``, ``demos`` (``num``, ``length``,
     ``env`` overrides), ``discovery`` (DDO settings), ``dqn`` (:class:`OptionsDQNConfig` fields), ``episodes``,
     ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
-    ``greedy: {num, length}``), ``conditions`` (per condition: ``mode`` and ``meta_control``), ``logger``
-    and ``progress``.
+    ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
+    and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
     """
     cfg = dict(cfg)
     progress = bool(cfg.get("progress", False))
@@ -391,8 +391,10 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
             for i, r in enumerate(returns):
                 exp_logger.log_scalar("episode_return", float(r), step=first + i)
 
+    # a condition may run longer than the others (e.g. actions only for 5000 episodes, options for 1000)
+    num_episodes = int(condition.get("episodes") or cfg["episodes"])
     returns, frames = train_episodes(
-        agent, int(cfg["episodes"]), ckpt, checkpoint_every=int(cfg["checkpoint_every"]), progress=progress,
+        agent, num_episodes, ckpt, checkpoint_every=int(cfg["checkpoint_every"]), progress=progress,
         desc=cell.name, on_episodes=log_returns,
     )  # fmt: skip
     with open(Path(cfg["out_dir"], "cells", "ran.txt"), "a") as f:
