@@ -14,7 +14,8 @@ Loads trajectories (or generates a benchmark), discovers options, decodes each t
 Run::
 
     python recipes/segment.py                                   # continuous pick-and-place demo
-    python recipes/segment.py data.source=gridworld discovery.action_space=categorical
+    python recipes/segment.py data.source=gridworld              # GridWorld sub-goal patrols (8 options)
+    python recipes/segment.py data.source=gridworld data.grid=four-rooms
     python recipes/segment.py data.source=file data.path=demos.npz discovery.num_options=5 output_dir=out
 
 File formats and keys: :mod:`torchrl_options.segmentation.io`. Settings: ``recipes/config/segment.yaml``.
@@ -32,6 +33,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options import discover_options, save_options
+from torchrl_options.envs import available_maps
 from torchrl_options.segmentation import (
     boundary_metrics,
     gridworld_subgoal_demonstrations,
@@ -50,7 +52,12 @@ def load_data(cfg: DictConfig):
     if source == "continuous":
         return reach_grasp_demonstrations(cfg.data.num_trajectories, seed=cfg.data.seed)
     if source == "gridworld":
-        return gridworld_subgoal_demonstrations(cfg.data.num_trajectories, cfg.data.length, seed=cfg.data.seed)
+        grid = cfg.data.get("grid", "diamond")
+        if grid not in ("diamond", *available_maps()):
+            grid = hydra.utils.to_absolute_path(grid)  # a map file
+        return gridworld_subgoal_demonstrations(
+            cfg.data.num_trajectories, cfg.data.length, grid=grid, seed=cfg.data.seed
+        )
     if source == "file":
         if not cfg.data.path:
             raise ValueError("data.source=file needs data.path=<file or directory>.")
@@ -74,8 +81,11 @@ def run(cfg: DictConfig) -> dict:
     logger.info("%d trajectories, %d steps (%s actions)", data.batch_size[0], int(lengths.sum()), action_space)
 
     d = cfg.discovery
+    num_options = d.num_options
+    if num_options is None:  # the benchmarks' choice: twice the 4 sub-goals of the GridWorld demo, else 4
+        num_options = 8 if cfg.data.source == "gridworld" else 4
     result = discover_options(
-        data, d.num_options, action_space=action_space, meta_control=d.meta_control, init=d.init,
+        data, num_options, action_space=action_space, meta_control=d.meta_control, init=d.init,
         num_cells=list(d.num_cells), num_iterations=d.num_iterations, lr=d.lr, batch_size=d.batch_size, seed=d.seed,
         progress=cfg.progress, return_info=True,
     )
@@ -87,7 +97,7 @@ def run(cfg: DictConfig) -> dict:
     metrics: dict = {
         "num_trajectories": int(data.batch_size[0]),
         "num_steps": int(lengths.sum()),
-        "num_options": int(d.num_options),
+        "num_options": int(num_options),
         "log_likelihood_per_step": float(seg.log_likelihood.sum() / lengths.sum()),
         "mean_segment_length": float(lengths.sum() / (seg.boundary_mask.sum() + data.batch_size[0])),
     }
@@ -114,11 +124,11 @@ def run(cfg: DictConfig) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    title = f"DDO segmentation ({s.method}), {d.num_options} options"
+    title = f"DDO segmentation ({s.method}), {num_options} options"
     if "accuracy" in metrics:
         title += f": boundary accuracy {_fmt(metrics['accuracy'])} (random {_fmt(metrics['random']['accuracy'])})"
     fig = plot_segmentation(
-        seg.options, reference, lengths=lengths, num_options=d.num_options,
+        seg.options, reference, lengths=lengths, num_options=num_options,
         max_trajectories=cfg.plot.max_trajectories, title=title, path=out / "segmentation.png",
     )
     plt.close(fig)

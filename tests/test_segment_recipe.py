@@ -33,7 +33,7 @@ def _config(**overrides):
     return cfg
 
 
-def _check_outputs(out: Path, n: int, with_reference: bool):
+def _check_outputs(out: Path, n: int, with_reference: bool, num_options: int = 4):
     assert {"segmentation.npz", "options.pt", "metrics.json", "metrics.md", "segmentation.png"} <= {
         p.name for p in out.iterdir()
     }
@@ -48,7 +48,7 @@ def _check_outputs(out: Path, n: int, with_reference: bool):
         assert 0.0 <= metrics["random"]["expected_accuracy"] <= 1.0
         assert "random accuracy" in (out / "metrics.md").read_text()
     assert (out / "segmentation.png").read_bytes()[:4] == b"\x89PNG"
-    assert load_options(out / "options.pt").num_options == 4
+    assert load_options(out / "options.pt").num_options == num_options == metrics["num_options"]
 
 
 def test_recipe_on_a_file(tmp_path):
@@ -79,8 +79,17 @@ def test_recipe_command_line_demo(tmp_path):
            f"output_dir={out}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    _check_outputs(out, 3, with_reference=True)
+    _check_outputs(out, 3, with_reference=True, num_options=8)  # the GridWorld benchmark's 8 options
     assert json.loads((out / "metrics.json").read_text())["window"] == 1
+
+
+def test_recipe_gridworld_four_rooms(tmp_path):
+    cfg = _config(**{"data.source": "gridworld", "data.grid": "four-rooms", "data.num_trajectories": 2,
+                     "data.length": 30, "discovery.num_iterations": 2, "discovery.num_options": 3,
+                     "output_dir": str(tmp_path), "segmentation.baseline_samples": 5})
+    metrics = _recipe().run(cfg)
+    assert metrics["window"] == 1 and metrics["num_steps"] == 60
+    assert np.load(tmp_path / "segmentation.npz")["posterior"].shape == (2, 30, 3)
 
 
 def test_recipe_bad_file_names_the_key(tmp_path):

@@ -8,6 +8,9 @@ skills with known boundaries (continuous pick-and-place, GridWorld sub-goal tour
 them like the paper's figure 5.
 """
 from torchrl_options.segmentation.generators import (
+    dead_ends,
+    default_subgoals,
+    diamond_map,
     gridworld_subgoal_demonstrations,
     REACH_GRASP_SKILLS,
     reach_grasp_demonstrations,
@@ -34,6 +37,9 @@ from torchrl_options.segmentation.segment import boundaries_from_options, segmen
 
 __all__ = [
     "as_boundary_lists",
+    "dead_ends",
+    "default_subgoals",
+    "diamond_map",
     "boundaries_from_options",
     "boundary_accuracy",
     "boundary_metrics",

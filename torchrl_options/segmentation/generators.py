@@ -6,7 +6,9 @@ demonstrations against expert annotations; that data is not public, so these gen
 - :func:`reach_grasp_demonstrations`: continuous actions. A point gripper in the unit square reaches an object,
   grasps it, carries it to a drop point and releases it: four skills with noisy continuous actions.
 - :func:`gridworld_subgoal_demonstrations`: discrete actions. A hierarchical supervisor in a GridWorld tours
-  sub-goals (the rooms' centres), each reached by the value-iteration shortest-path policy.
+  sub-goals, each reached by the value-iteration shortest-path policy; by default the four dead ends of
+  :func:`diamond_map`, a map designed so that the skills can be told apart from the data (or the room centres of
+  the paper's four-rooms map, an ambiguous variant).
 
 Both return a ``[B, T]`` TensorDict in :class:`~torchrl_options.DDOLoss`'s layout (``observation``, ``action``,
 ``("next", "observation")``, ``("collector", "mask")``, ``("next", "terminated")``) plus the ground truth:
@@ -21,7 +23,15 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-__all__ = ["REACH_GRASP_SKILLS", "reach_grasp_demonstrations", "gridworld_subgoal_demonstrations", "room_centers"]
+__all__ = [
+    "REACH_GRASP_SKILLS",
+    "dead_ends",
+    "default_subgoals",
+    "diamond_map",
+    "gridworld_subgoal_demonstrations",
+    "reach_grasp_demonstrations",
+    "room_centers",
+]
 
 REACH_GRASP_SKILLS = ("reach object", "grasp", "carry to drop point", "release")
 
@@ -176,6 +186,16 @@ def reach_grasp_demonstrations(
     )
 
 
+def _around(cells: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Cells listed around the map (clockwise, by angle about their mean), so that consecutive ones are neighbours
+    on a round."""
+    if len(cells) <= 2:
+        return list(cells)
+    mean = torch.tensor(cells, dtype=torch.float64).mean(0)
+    angle = [math.atan2(c - mean[1].item(), -(r - mean[0].item())) for r, c in cells]
+    return [cells[i] for i in sorted(range(len(cells)), key=lambda i: angle[i])]
+
+
 def room_centers(grid) -> list[tuple[int, int]]:
     """The centre of each room of a GridWorld map (the room cell closest to the room's centroid), listed around
     the map (by angle about the mean of the centres), so that consecutive rooms are neighbours on a round.
@@ -193,19 +213,112 @@ def room_centers(grid) -> list[tuple[int, int]]:
         centroid = pos.mean(0)
         best = (pos - centroid).norm(dim=-1).argmin()
         centers.append(tuple(int(v) for v in grid.free_cells[cells[best]]))
-    if len(centers) > 2:
-        mean = torch.tensor(centers, dtype=torch.float64).mean(0)
-        angle = [math.atan2(c - mean[1].item(), -(r - mean[0].item())) for r, c in centers]
-        centers = [centers[i] for i in sorted(range(len(centers)), key=lambda i: angle[i])]
-    return centers
+    return _around(centers)
+
+
+def dead_ends(grid) -> list[tuple[int, int]]:
+    """The dead ends of a GridWorld map (free cells with exactly one free neighbour), listed around the map like
+    :func:`room_centers`.
+
+    Examples:
+        >>> dead_ends(diamond_map(2, 1))
+        [(4, 1), (1, 4), (4, 7), (7, 4)]
+        >>> dead_ends("four-rooms")
+        []
+    """
+    from torchrl_options.envs.maps import load_map
+
+    grid = load_map(_resolve_grid(grid))
+    moved = grid.next_cell != torch.arange(grid.num_free)[:, None]
+    ends = grid.free_cells[moved.sum(1) == 1]
+    return _around([tuple(int(v) for v in pos) for pos in ends])
+
+
+def diamond_map(radius: int = 4, spur: int = 3):
+    """A GridWorld map for segmentation: a diamond-shaped ring of four staircase corridors, with a dead-end spur
+    at each vertex.
+
+    The ring's vertices are at the top, right, bottom and left of the diamond, ``2 * radius`` moves apart; each
+    side is a one-cell-wide staircase that alternates a horizontal and a vertical move (so walking a side takes
+    ``radius`` moves of each of two kinds, in turn). A straight spur of ``spur`` cells leaves each vertex outward
+    and ends in a dead end. Every free cell is a corridor cell (no rooms, no 2x2 free block), so walls block every
+    move but the two along the corridor (three at a vertex). The map is ``2 * radius + 2 * spur + 3`` cells square.
+
+    It is the default map of :func:`gridworld_subgoal_demonstrations`, whose sub-goals are then the four dead ends
+    (see there why).
+
+    Args:
+        radius (int): moves of each kind along a side (at least 2). Defaults to 4.
+        spur (int): cells per spur (at least 1). Defaults to 3.
+
+    Returns:
+        GridMap: named ``"diamond-{radius}-{spur}"``, without start or goal markers.
+
+    Examples:
+        >>> grid = diamond_map(2, 1)
+        >>> for row in grid.walls.int().tolist():
+        ...     print("".join(".#"[v] for v in row))
+        #########
+        ####.####
+        ###...###
+        ##..#..##
+        #...#...#
+        ##..#..##
+        ###...###
+        ####.####
+        #########
+        >>> diamond_map().num_free, diamond_map().num_rooms, dead_ends(diamond_map())
+        (44, 0, [(8, 1), (1, 8), (8, 15), (15, 8)])
+    """
+    from torchrl_options.envs.maps import GridMap
+
+    if radius < 2 or spur < 1:
+        raise ValueError(f"radius must be at least 2 and spur at least 1; got radius={radius}, spur={spur}.")
+    R = radius
+    n = 2 * R + 2 * spur + 3
+    o = spur + 1  # the diamond's bounding box starts at (o, o); vertices (0, R), (R, 2R), (2R, R), (R, 0)
+    walls = torch.ones(n, n, dtype=torch.bool)
+    cells = []
+    for k in range(R):
+        cells += [(k, R + k), (k, R + k + 1)]  # top -> right: right, then down
+        cells += [(R + k, 2 * R - k), (R + k + 1, 2 * R - k)]  # right -> bottom: down, then left
+        cells += [(2 * R - k, R - k), (2 * R - k, R - k - 1)]  # bottom -> left: left, then up
+        cells += [(R - k, k), (R - k - 1, k)]  # left -> top: up, then right
+    for j in range(1, spur + 1):
+        cells += [(-j, R), (R, 2 * R + j), (2 * R + j, R), (R, -j)]
+    for r, c in cells:
+        walls[o + r, o + c] = False
+    return GridMap(walls=walls, name=f"diamond-{radius}-{spur}")
+
+
+def default_subgoals(grid) -> list[tuple[int, int]]:
+    """The default sub-goals of :func:`gridworld_subgoal_demonstrations` on a map: its dead ends when it has at
+    least two (:func:`dead_ends`), its rooms' centres otherwise (:func:`room_centers`).
+
+    Examples:
+        >>> default_subgoals("diamond")
+        [(8, 1), (1, 8), (8, 15), (15, 8)]
+        >>> default_subgoals("four-rooms")
+        [(12, 2), (2, 2), (2, 8), (12, 8)]
+    """
+    from torchrl_options.envs.maps import load_map
+
+    grid = load_map(_resolve_grid(grid))
+    ends = dead_ends(grid)
+    return ends if len(ends) >= 2 else room_centers(grid)
+
+
+def _resolve_grid(grid):
+    """``"diamond"`` is :func:`diamond_map` with its defaults; anything else is left to ``load_map``."""
+    return diamond_map() if isinstance(grid, str) and grid == "diamond" else grid
 
 
 def gridworld_subgoal_demonstrations(
     num_trajectories: int = 32,
     length: int = 200,
     *,
-    grid: str | Path = "four-rooms",
-    subgoals: list[tuple[int, int]] | None = None,
+    grid: str | Path = "diamond",
+    subgoals: str | list[tuple[int, int]] | None = None,
     noise: float = 0.3,
     tour: str = "patrol",
     one_hot: bool = True,
@@ -213,30 +326,54 @@ def gridworld_subgoal_demonstrations(
 ) -> TensorDict:
     """Demonstrations of a hierarchical GridWorld supervisor that tours sub-goals, with the true switch points.
 
-    Skill ``k`` is "go to sub-goal ``k``" (by default the rooms' centres, :func:`room_centers`), acted by the
-    optimal policy of :func:`~torchrl_options.envs.value_iteration` toward that cell (ties broken at random). The
-    agent starts in a uniformly random free cell with a random sub-goal other than its own cell; when it reaches
-    the active sub-goal, a new segment starts at the next step with the next sub-goal: with ``tour="patrol"``
-    (default) the following one in the order of ``subgoals`` (a round of the rooms, which :func:`room_centers`
-    lists around the map), with ``tour="random"`` one drawn uniformly among the others.
+    Skill ``k`` is "go to sub-goal ``k``", acted by the optimal policy of
+    :func:`~torchrl_options.envs.value_iteration` toward that cell (ties broken at random). The agent starts in a
+    uniformly random free cell with a random sub-goal other than its own cell; when it reaches the active
+    sub-goal, a new segment starts at the next step with the next sub-goal: with ``tour="patrol"`` (default) the
+    following one in the order of ``subgoals`` (listed around the map, so a patrol goes round), with
+    ``tour="random"`` one drawn uniformly among the others. The dynamics are
+    :class:`~torchrl_options.envs.GridWorldEnv`'s: the chosen move is replaced by a uniformly random one with
+    probability ``noise`` and walls block moves. The recorded action is the one the supervisor chose (as in
+    :func:`~torchrl_options.envs.generate_demonstrations`). The observation is the agent's cell only (one-hot
+    over the free cells, or its normalised ``(row, col)``): the active sub-goal is not observed, and must be
+    inferred, as in a real demonstration.
 
-    With random tours, skills share long path prefixes (every way out of a four-rooms corner room is the same
-    corridor), so which skill is running is unidentifiable from the actions until the paths part: a harder,
-    ambiguous benchmark, where DDO tends to cut segments where the paths part. A patrol visits the rooms in turn,
-    so each stretch of corridor is crossed in one direction by one skill. The dynamics are :class:`~torchrl_options.envs.GridWorldEnv`'s: the chosen move is replaced by a
-    uniformly random one with probability ``noise`` and walls block moves. The recorded action is the one the
-    supervisor chose (as in :func:`~torchrl_options.envs.generate_demonstrations`).
+    **Default design** (``grid="diamond"``, :func:`diamond_map`; sub-goals its four dead ends; patrol). A
+    segmentation benchmark needs skills that can be told apart from (state, action) data; this one is built so:
 
-    The observation is the agent's cell only (one-hot over the free cells, or its normalised ``(row, col)``): the
-    active sub-goal is not observed, and must be inferred, as in a real demonstration.
+    - every sub-goal is a dead end, so the agent turns back there: the moves just before and just after a true
+      boundary are opposite moves in the same cells, which one option can only explain both of at a cost, so the
+      data pin the boundary to within a step;
+    - on a patrol each corridor cell is crossed in each direction by one skill only, so nothing in the data calls
+      for a cut between dead ends;
+    - the corridors are staircases, so a skill alternates two moves at every step: skills are not runs of one
+      action, and cutting where the action changes (a detector that needs no model) scores about 0.08.
+
+    With the defaults a segment lasts about 19 steps (14 moves, slowed by the noise). DDO with 8 options (twice
+    the sub-goals) recovers the boundaries with accuracy about 0.95 at +-1 step, random boundaries about 0.14
+    (``benchmarks/bench_segmentation.py``). The first segment of a trajectory starts in a random cell toward a
+    random sub-goal, so it may run a corridor the other way round than the patrol; most of DDO's few wrong
+    boundaries are there.
+
+    **Four-rooms variant** (``grid="four-rooms"``: sub-goals the room centres, :func:`room_centers`). The
+    supervisor patrols the corner rooms through the one-cell corridors of the H. DDO finds nearly every true
+    boundary but also cuts the skills in the corridors (boundary accuracy about 0.64 at +-1 step with 4 or 8
+    options), at a likelihood clearly below that of options started from the true skills (seen with 4 options:
+    -0.167 against -0.126 nats per step): local optima, in a landscape where skills move in one direction over
+    long stretches (cutting where the action changes scores about 0.41 there). ``tour="random"`` is harder
+    still: skills share long path prefixes (every way out of a dead end is the same corridor).
 
     Args:
         num_trajectories (int): B.
         length (int): T, steps per trajectory (all valid).
 
     Keyword Args:
-        grid: a built-in map name, a map file or a :class:`~torchrl_options.envs.GridMap`.
-        subgoals (list of (row, col), optional): defaults to the rooms' centres.
+        grid: ``"diamond"`` (default, :func:`diamond_map` with its defaults), a built-in map name
+            (:func:`~torchrl_options.envs.available_maps`), a map file or a :class:`~torchrl_options.envs.GridMap`
+            (e.g. ``diamond_map(radius=6, spur=4)`` for longer segments).
+        subgoals: ``None`` (default: :func:`default_subgoals`, the map's dead ends when it has two or more, else
+            its rooms' centres), ``"dead-ends"``, ``"room-centers"``, or a list of ``(row, col)`` cells, in tour
+            order.
         noise (float): the env's action noise. Defaults to 0.3 (the paper's).
         tour (str): ``"patrol"`` (default) or ``"random"``, the choice of the next sub-goal.
         one_hot (bool): one-hot observation (default) or normalised coordinates.
@@ -250,16 +387,23 @@ def gridworld_subgoal_demonstrations(
 
     Examples:
         >>> data = gridworld_subgoal_demonstrations(4, 100, seed=0)
-        >>> data["observation"].shape, data["action"].dtype
-        (torch.Size([4, 100, 53]), torch.int64)
+        >>> data["observation"].shape, data["action"].dtype  # one-hot over the 44 cells of the diamond
+        (torch.Size([4, 100, 44]), torch.int64)
         >>> bool((data["true_switch"].sum(1) > 2).all())  # several sub-goals reached per trajectory
         True
+        >>> gridworld_subgoal_demonstrations(2, 50, grid="four-rooms")["observation"].shape[-1]
+        53
     """
     from torchrl_options.envs.maps import load_map
     from torchrl_options.envs.supervisor import value_iteration
 
-    grid = load_map(grid)
-    subgoals = room_centers(grid) if subgoals is None else [tuple(int(v) for v in s) for s in subgoals]
+    grid = load_map(_resolve_grid(grid))
+    subgoals = default_subgoals(grid) if subgoals is None else subgoals
+    if isinstance(subgoals, str):
+        if subgoals not in ("dead-ends", "room-centers"):
+            raise ValueError(f"subgoals must be 'dead-ends', 'room-centers' or a list of cells, got {subgoals!r}.")
+        subgoals = dead_ends(grid) if subgoals == "dead-ends" else room_centers(grid)
+    subgoals = [tuple(int(v) for v in s) for s in subgoals]
     if len(subgoals) < 2:
         raise ValueError(f"subgoals needs at least two cells, got {subgoals}.")
     for s in subgoals:
