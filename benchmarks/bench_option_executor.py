@@ -1,21 +1,27 @@
 """Collector throughput with and without :class:`~torchrl_options.transforms.OptionExecutor`.
 
-Same 16 batched envs, same policy (``QValueActor`` MLP + ``EGreedyModule``), the only difference being the
-executor with K=4 MLP options (and the policy's K extra outputs). Rounds alternate between the two setups
-so that load on a shared machine affects both alike; the table reports the median frames/s of each and
-their ratio. Envs:
+Same 16 batched envs, same policy (``QValueActor`` MLP + ``EGreedyModule``, over the augmented action spec
+``A + K`` with the executor and over the plain spec ``A`` without it), one run; the only difference is the
+executor with K=4 MLP options. The two collectors take turns batch by batch so that load on a shared
+machine affects both alike; the table reports the median over rounds of the frames/s of each, their ratio,
+the range of the per-round ratios, and the same ratio measured in process CPU time
+(``time.process_time``), which time slicing on a loaded machine does not distort (on an idle machine the
+two agree: everything runs in this process, single-threaded). Envs:
 
 - ``randomwalk``: a natively batched env whose step costs almost nothing, the worst case for the executor
   (its cost, and that of the ``TransformedEnv`` wrapper it brings, is not hidden behind a simulator);
 - ``randomwalk+stepcounter``: the same env already wrapped in a ``TransformedEnv`` (as most envs are);
+- ``gridworld``: our natively batched :class:`~torchrl_options.envs.GridWorldEnv` (four rooms, apple task);
 - ``serial-randomwalk``: a ``SerialEnv`` of 16 single random walks, the executor outside it.
 
-Episode ends are random and independent of the actions, so both setups reset equally often.
+Episode ends are random and independent of the actions in the random walks, so both setups reset equally
+often.
 
 Run::
 
-    python benchmarks/bench_option_executor.py               # defaults: 16 envs, K=4, 5 rounds
-    python benchmarks/bench_option_executor.py --rounds 9 --frames 32768
+    python benchmarks/bench_option_executor.py --rounds 5 --frames 8192   # the issue's setting
+    python benchmarks/bench_option_executor.py --rounds 9 --frames 32768 --envs randomwalk gridworld
+    python benchmarks/bench_option_executor.py --rounds 3 --frames 8192 --breakdown   # where the time goes
 """
 from __future__ import annotations
 
@@ -33,6 +39,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, SerialEnv, StepCounter
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 
+from torchrl_options.envs import GridWorldEnv
 from torchrl_options.transforms import OptionExecutor
 
 
@@ -91,13 +98,15 @@ class MLPOptions(nn.Module):
         return out[..., : self.K * self.A].unflatten(-1, (self.K, self.A)), out[..., self.K * self.A :]
 
 
-ENV_KINDS = ("randomwalk", "randomwalk+stepcounter", "serial-randomwalk")
+ENV_KINDS = ("randomwalk", "randomwalk+stepcounter", "gridworld", "serial-randomwalk")
 
 
 def make_base_env(args, kind: str):
     """16 batched envs: natively batched (cheapest step: worst case for the executor) or a SerialEnv."""
     if kind == "serial-randomwalk":
         return SerialEnv(args.num_envs, partial(BatchedRandomWalk, 1, args.obs_dim, args.num_actions))
+    if kind == "gridworld":
+        return GridWorldEnv("four-rooms", batch_size=[args.num_envs], seed=0)
     env = BatchedRandomWalk(args.num_envs, args.obs_dim, args.num_actions)
     if kind == "randomwalk+stepcounter":
         env = env.append_transform(StepCounter(max_steps=1000))
@@ -124,26 +133,87 @@ def make_policy(env, args):
     return TensorDictSequential(actor, EGreedyModule(spec, eps_init=0.1, eps_end=0.1))
 
 
-def frames_per_second(env, policy, args) -> float:
-    # closing a batched env resets torch's thread count (torchrl 0.14): set it for every run
+def measure(setups: dict, args) -> dict:
+    """Per-round frames/s (wall clock and process CPU time) of each setup, batches interleaved.
+
+    One collector per setup; after a warm-up batch each, the collectors take turns batch by batch, so that
+    a change of load on a shared machine hits both setups alike. A round is ``args.frames`` frames.
+    """
+    # closing a batched env resets torch's thread count (torchrl 0.14): set it before collecting
     torch.set_num_threads(args.threads)
-    collector = Collector(
-        env,
-        policy,
-        frames_per_batch=args.frames_per_batch,
-        total_frames=args.frames,
-        auto_register_policy_transforms=False,
-    )
-    collector.set_seed(0)
-    start, frames = None, 0
-    for i, batch in enumerate(collector):
-        if i == 0:  # warm-up batch
-            start = time.perf_counter()
-            continue
-        frames += batch.numel()
-    elapsed = time.perf_counter() - start
-    collector.shutdown(close_env=False)
-    return frames / elapsed
+    collectors, iterators = {}, {}
+    for key, (env, policy) in setups.items():
+        collectors[key] = Collector(
+            env, policy, frames_per_batch=args.frames_per_batch, total_frames=-1, auto_register_policy_transforms=False
+        )
+        collectors[key].set_seed(0)
+        iterators[key] = iter(collectors[key])
+        next(iterators[key])  # warm-up batch
+    batches = max(1, args.frames // args.frames_per_batch)
+    fps = {key: [] for key in setups}
+    for _ in range(args.rounds):
+        wall, cpu, frames = dict.fromkeys(setups, 0.0), dict.fromkeys(setups, 0.0), dict.fromkeys(setups, 0)
+        for _ in range(batches):
+            if torch.get_num_threads() != args.threads:
+                # closing a batched env (e.g. one garbage-collected from a previous row) resets it
+                torch.set_num_threads(args.threads)
+            for key, iterator in iterators.items():
+                start, start_cpu = time.perf_counter(), time.process_time()
+                batch = next(iterator)
+                wall[key] += time.perf_counter() - start
+                cpu[key] += time.process_time() - start_cpu
+                frames[key] += batch.numel()
+        for key in setups:
+            fps[key].append((frames[key] / wall[key], frames[key] / cpu[key]))
+    for collector in collectors.values():
+        collector.shutdown(close_env=False)
+    return fps
+
+
+class _CpuTimer:
+    """Accumulates the process CPU time spent in some methods of some objects (instance-level wrappers)."""
+
+    def __init__(self):
+        self.totals: dict[str, float] = {}
+
+    def wrap(self, obj, method: str, label: str) -> None:
+        inner = getattr(obj, method)
+        self.totals.setdefault(label, 0.0)
+
+        def timed(*args, **kwargs):
+            start = time.process_time()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                self.totals[label] += time.process_time() - start
+
+        setattr(obj, method, timed)
+
+
+def breakdown(setups: dict, args) -> dict[str, float]:
+    """Process CPU time per env step (microseconds) of the policy, of the executor and of its options.
+
+    ``executor`` is the executor's own per-step code (``_inv_call``, ``_step``, ``_reset``) including the
+    options' forward (``options``); ``bookkeeping`` is the difference. The rest of a step is the env, the
+    ``TransformedEnv`` machinery and the collector.
+    """
+    timer = _CpuTimer()
+    for with_executor, (env, policy) in setups.items():
+        tag = "with" if with_executor else "without"
+        timer.wrap(policy, "forward", f"policy ({tag})")
+        if with_executor:
+            executor = next(t for t in env.transform.modules() if isinstance(t, OptionExecutor))
+            for method in ("_inv_call", "_step", "_reset"):
+                timer.wrap(executor, method, "executor")
+            timer.wrap(executor.options.module, "forward", "options")
+    fps = measure(setups, args)
+    steps = (args.rounds * max(1, args.frames // args.frames_per_batch) + 1) * args.frames_per_batch / args.num_envs
+    out = {key: 1e6 * total / steps for key, total in timer.totals.items()}
+    out["bookkeeping"] = out["executor"] - out["options"]
+    for with_executor, rounds in fps.items():
+        tag = "with" if with_executor else "without"
+        out[f"env step, all ({tag})"] = 1e6 * args.num_envs / statistics.median(c for _, c in rounds)
+    return out
 
 
 def main():
@@ -157,6 +227,11 @@ def main():
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--envs", nargs="+", default=list(ENV_KINDS), choices=ENV_KINDS)
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also time (process CPU time per env step, instrumented run) the policy, the executor and its options",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -167,24 +242,40 @@ def main():
         for with_executor in (False, True):
             env = make_env(args, with_executor, kind)
             setups[with_executor] = (env, make_policy(env, args))
-        fps = {False: [], True: []}
-        for _ in range(args.rounds):
-            for with_executor, (env, policy) in setups.items():
-                fps[with_executor].append(frames_per_second(env, policy, args))
-        base, opt = statistics.median(fps[False]), statistics.median(fps[True])
-        rows.append((kind, base, opt, opt / base))
+        fps = measure(setups, args)
+        wall = {k: [w for w, _ in v] for k, v in fps.items()}
+        cpu = {k: [c for _, c in v] for k, v in fps.items()}
+        base, opt = statistics.median(wall[False]), statistics.median(wall[True])
+        per_round = [o / b for o, b in zip(wall[True], wall[False])]
+        cpu_ratio = statistics.median(cpu[True]) / statistics.median(cpu[False])
+        rows.append((kind, base, opt, opt / base, min(per_round), max(per_round), cpu_ratio))
 
     print(
         f"Collector frames/s, {args.num_envs} batched envs, K={args.num_options} MLP options, "
-        f"A={args.num_actions}, {args.frames} frames x {args.rounds} rounds (median), "
-        f"torch threads={args.threads}"
+        f"{args.frames} frames x {args.rounds} rounds (median), torch threads={args.threads}"
     )
-    header = f"| {'env (16 batched)':<32} | {'without executor':>16} | {'with executor':>13} | {'ratio':>5} |"
+    header = (
+        f"| {'env (16 batched)':<24} | {'without executor':>16} | {'with executor':>13} | {'ratio':>5} "
+        f"| {'per-round ratios':>16} | {'ratio (CPU time)':>16} |"
+    )
     print(header)
     print("|" + "|".join("-" * (len(c)) for c in header.split("|")[1:-1]) + "|")
-    for name, base, opt, ratio in rows:
-        print(f"| {name:<32} | {base:>16.0f} | {opt:>13.0f} | {ratio:>5.2f} |")
+    for name, base, opt, ratio, lo, hi, cpu_ratio in rows:
+        spread = f"{lo:.2f}-{hi:.2f}"
+        print(
+            f"| {name:<24} | {base:>16.0f} | {opt:>13.0f} | {ratio:>5.2f} | {spread:>16} | {cpu_ratio:>16.2f} |"
+        )
 
+
+    if args.breakdown:
+        print(f"\nCPU time per env step ({args.num_envs} envs), microseconds, instrumented run:")
+        for kind in args.envs:
+            setups = {}
+            for with_executor in (False, True):
+                env = make_env(args, with_executor, kind)
+                setups[with_executor] = (env, make_policy(env, args))
+            times = breakdown(setups, args)
+            print(f"  {kind}: " + ", ".join(f"{key} {value:.0f}" for key, value in times.items()))
 
 if __name__ == "__main__":
     main()

@@ -12,7 +12,7 @@ from torchrl.data import OneHot
 from torchrl.envs import Compose, ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
 from torchrl.modules import EGreedyModule, QValueActor
 
-from _tiny_envs import BIG, Corridor, CheckpointOptions, checkpoint_options, constant_options
+from _tiny_envs import BIG, LEFT, RIGHT, Corridor, CheckpointOptions, checkpoint_options, constant_options
 from torchrl_options.transforms import OptionExecutor
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
@@ -368,9 +368,86 @@ def test_action_out_of_range():
     td["action"] = torch.tensor(A + K)
     with pytest.raises(ValueError, match=r"\[0, 4\)"):
         env.step(td)
+    # negative indices too (the range check is the lookup of the started option, which does not wrap them)
+    env = corridor_with_executor(batch_size=[3])
+    td = env.reset()
+    td["action"] = torch.tensor([0, -1, A])
+    expected = r"expected integers in \[0, 4\) \(2 primitive actions \+ 2 options\), got values in \[-1, 2\]"
+    with pytest.raises(ValueError, match=expected):
+        env.step(td)
 
 
-def test_missing_lower_level():
-    env = Corridor(L).append_transform(OptionExecutor(checkpoint_options(L), num_options=K, level=2))
-    with pytest.raises(KeyError, match="lower_option_key"):
-        env.observation_spec
+# ------------------------------------------------------------------------------- options evaluated once
+class CountingOptions(torch.nn.Module):
+    """One option whose action depends on the state (right below cell 4, left from it) and that never
+    terminates; counts its forward calls. ``flip`` (a buffer) swaps left and right."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+        self.register_buffer("flip", torch.zeros(()))
+
+    def forward(self, position):
+        self.calls += 1
+        right = (position.squeeze(-1) < 4) ^ self.flip.bool()
+        logits = torch.stack([torch.where(right, -BIG, BIG), torch.where(right, BIG, -BIG)], -1).unsqueeze(-2)
+        return logits, torch.full((*position.shape[:-1], 1), -BIG)
+
+
+def counting_corridor(batch_size=()):
+    options = CountingOptions()
+    env = Corridor(L, max_steps=None, batch_size=batch_size).append_transform(
+        OptionExecutor(TensorDictModule(options, ["position"], ["option_logits", "termination_logits"]), num_options=1)
+    )
+    return env, options
+
+
+def test_options_run_once_per_step():
+    """The outputs computed for the termination at s_{t+1} give the action at t+1: one forward per step."""
+    env, options = counting_corridor(batch_size=[4])
+    env.set_seed(0)
+    policy = scripted_policy([[LEFT, LEFT, A + 0, LEFT]] * 10)  # no env reaches the end: no reset
+    data = env.rollout(10, policy=policy, break_when_any_done=False)
+    assert not data["next", "done"].any()
+    assert options.calls == 10 + 1  # + the first step after the reset
+    # env 2 runs the option: right up to cell 4, then left (state-dependent actions from the reused outputs)
+    assert data["next", "position"][2].squeeze(-1).tolist() == [1, 2, 3, 4, 3, 4, 3, 4, 3, 4]
+
+
+def test_options_recomputed_when_inputs_or_parameters_change():
+    env, options = counting_corridor()
+    env.set_seed(0)
+    td = env.reset()
+    td["action"] = torch.tensor(A + 0)  # start the option at cell 0: right
+    td = env.step_mdp(env.step(td))
+    assert int(td["position"]) == 1 and int(td["option"]) == 0
+    # the observation is written in place (as partial resets and batched-env buffers do): the option must
+    # act at the new value (cell 5: left), not reuse its outputs at cell 1 (right)
+    td["position"].fill_(5)
+    td["action"] = torch.tensor(LEFT)  # ignored: the option runs
+    td = env.step_mdp(env.step(td))
+    assert int(td["executed_action"]) == LEFT and int(td["position"]) == 0
+    # the options' parameters (here a buffer) change in place (training, load_state_dict): at cell 0 the
+    # option now goes left; reusing the outputs computed before the change would go right
+    options.flip.fill_(1.0)
+    td["action"] = torch.tensor(LEFT)
+    td = env.step(td)
+    assert int(td["next", "executed_action"]) == LEFT and int(td["next", "executed_option"]) == 0
+
+
+def test_inference_mode_and_float64_options():
+    """Under torch.inference_mode (tensors without version counters) the data are those of no_grad."""
+    def rollout(mode, dtype=torch.float32):
+        logits = torch.tensor([[0.0, 0.0], [1.0, -1.0]], dtype=dtype)
+        options = constant_options(logits, torch.tensor([0.0, -1.0], dtype=dtype))
+        env = Corridor(L, max_steps=12, batch_size=[4]).append_transform(OptionExecutor(options, num_options=K))
+        env.set_seed(0)
+        with torch.random.fork_rng():  # the random policy's draws; other tests' global RNG state is kept
+            torch.manual_seed(0)
+            with mode():
+                return env.rollout(40, break_when_any_done=False)
+
+    expected = rollout(torch.no_grad)
+    for data in (rollout(torch.inference_mode), rollout(torch.no_grad, torch.float64)):
+        for key in ("executed_action", "executed_option", "option_decision", "option"):
+            assert (data["next", key] == expected["next", key]).all()

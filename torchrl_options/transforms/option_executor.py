@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite, OneHot
@@ -46,8 +47,11 @@ class OptionExecutor(Transform):
 
     ``options`` is any TensorDict module that reads the observation and writes ``option_logits``
     ``[..., K, A]`` and ``termination_logits`` ``[..., K]`` (a DDO options module or a hand-written one).
-    It runs under ``torch.no_grad``, on ``s_t`` (the running option's action) and on ``s_{t+1}`` (its
-    termination) at every step.
+    It runs under ``torch.no_grad``, once per step: on ``s_{t+1}`` for the termination of the running
+    option, and the same outputs give the option's action at the next step (they are recomputed only when
+    the observation or the options' parameters changed in between, e.g. after a reset). Besides that
+    forward, a step costs a fixed sequence of about 20 small tensor ops, with no host-device
+    synchronisation (an out-of-range action still raises a ``ValueError`` naming the expected range).
 
     Entries (their names follow ``level``, see below), all of the shape of the action:
 
@@ -119,7 +123,7 @@ class OptionExecutor(Transform):
         4
         >>> check_env_specs(env)
         >>> _ = env.set_seed(0)
-        >>> data = env.rollout(10)
+        >>> data = env.rollout(10, break_when_any_done=False)
         >>> data["next", "option_decision"].shape, data["next", "executed_action"].dtype
         (torch.Size([10]), torch.int64)
     """
@@ -175,7 +179,8 @@ class OptionExecutor(Transform):
         self.primitive_actions = primitive_actions
         self.greedy = greedy
         self.level = level
-        self._options_in_keys = getattr(options, "in_keys", None)
+        in_keys = getattr(options, "in_keys", None)
+        self._options_in_keys = None if in_keys is None else [unravel_key(k) for k in in_keys]
         self._options_params = list(options.parameters()) + list(options.buffers())
         self._generator: torch.Generator | None = None
 
@@ -248,6 +253,8 @@ class OptionExecutor(Transform):
     def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
         self.__dict__.pop("_base_spec_cache", None)
+        self.__dict__.pop("_consts", None)
+        self.__dict__.pop("_options_cache", None)
         self._register_seed_hook()
         if self.parent is not None:
             self._base_action_spec()  # a wrong action spec fails here, when the executor is appended
@@ -275,30 +282,71 @@ class OptionExecutor(Transform):
         return self._generator
 
     # -------------------------------------------------------------- options
+    def _constants(self, device: torch.device) -> _StepConstants:
+        """Sizes, lookup tables and scratch buffers of the per-step code, built once per device."""
+        consts = self.__dict__.get("_consts")
+        if consts is None or consts.device != device:
+            spec = self._base_action_spec()
+            A, K = spec.n, self.num_options
+            n = spec.shape.numel()
+            shift = A if self.primitive_actions else 0
+            consts = _StepConstants(
+                device=device,
+                cpu=torch.device(device).type == "cpu",
+                A=A,
+                K=K,
+                n_aug=shift + K,
+                shape=spec.shape,
+                n=n,
+                flat=len(spec.shape) == 1,
+                # augmented action -> the option it starts at a decision, -1 for a primitive action
+                decode=(torch.arange(shift + K, device=device) - shift).clamp_min(_NO_OPTION),
+                arange=torch.arange(n, device=device),
+                no_option=torch.tensor(_NO_OPTION, device=device),
+                uniform=torch.empty((n, 1), device=device),
+                coin=torch.empty(n, device=device),
+            )
+            self.__dict__["_consts"] = consts
+        return consts
+
+    def _params_version(self) -> list[int] | None:
+        try:
+            return [p._version for p in self._options_params]
+        except RuntimeError:  # parameters created in inference mode: no version counter, never cached
+            return None
+
     def _evaluate_options(
-        self, tensordict: TensorDictBase, cache: bool = False
+        self, tensordict: TensorDictBase, consts: _StepConstants, cache: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``option_logits`` ``[N * K, A]`` and ``termination_logits`` ``[N * K]`` (batch flattened, option-major).
+        """``option_logits`` ``[N, K, A]`` and ``termination_logits`` ``[N, K]`` (batch flattened).
 
         The termination at ``s_{t+1}`` and the action at the next step need the options at the same state:
         the outputs computed in ``_step`` are kept (``cache=True``) and reused by the next ``_inv_call`` when
-        its inputs, and the options' parameters, are unchanged. So the options run once per step.
+        it reads the very same input tensors, unmodified since (same objects, same version counters: the
+        next observation is passed on by reference by ``step_mdp``; a partial reset or batched env buffers
+        writing into them in place bump their versions), and the options' parameters are unchanged. So the
+        options run once per step, and no input is copied or compared element-wise (except inference-mode
+        tensors, which have no version counter: a copy of them is kept and compared).
         """
         keys = self._options_in_keys
-        inputs = None if keys is None else tuple(tensordict.get(key, None) for key in keys)
-        version = tuple(p._version for p in self._options_params)
-        cached = self.__dict__.get("_options_cache")
-        if (
-            cached is not None
-            and inputs is not None
-            and cached[0] == version
-            and all(x is not None and x.shape == c.shape and torch.equal(x, c) for x, c in zip(inputs, cached[1]))
-        ):
-            return cached[2], cached[3]
+        inputs = None
+        if keys is not None:
+            inputs = [_get(tensordict, key) for key in keys]
+            cached = self.__dict__.get("_options_cache")
+            if cached is not None:
+                for x, (ref, version, copy) in zip(inputs, cached[0]):
+                    if copy is None:  # a tensor with a version counter: the same one, not written since
+                        if x is not ref or x._version != version:
+                            break
+                    elif x is None or x.shape != copy.shape or not torch.equal(x, copy):  # an inference tensor
+                        break
+                else:
+                    params = self._params_version()
+                    if params is not None and params == cached[1]:
+                        return cached[2], cached[3]
         with torch.no_grad():
             logits, term = self._call_options(tensordict, inputs)
-        K, A = self.num_options, self.num_actions
-        n = self._base_action_spec().shape.numel()
+        K, A, n = consts.K, consts.A, consts.n
         if logits is None or term is None:
             raise KeyError(
                 f"The options module did not write {self.option_logits_key!r} and "
@@ -307,21 +355,25 @@ class OptionExecutor(Transform):
         if logits.shape[-2:] != (K, A) or logits.shape[:-2].numel() != n:
             raise ValueError(
                 f"The options module wrote {self.option_logits_key!r} of shape {tuple(logits.shape)}; "
-                f"expected [*batch, K={K}, A={A}] with batch {tuple(self._base_action_spec().shape)}."
+                f"expected [*batch, K={K}, A={A}] with batch {tuple(consts.shape)}."
             )
         if term.shape[-1] != K or term.shape[:-1].numel() != n:
             raise ValueError(
                 f"The options module wrote {self.termination_logits_key!r} of shape {tuple(term.shape)}; "
-                f"expected [*batch, K={K}] with batch {tuple(self._base_action_spec().shape)}."
+                f"expected [*batch, K={K}] with batch {tuple(consts.shape)}."
             )
-        logits, term = logits.reshape(n * K, A), term.reshape(n * K)
-        if cache and inputs is not None and all(x is not None for x in inputs):
-            # clone: batched envs write the next observation into the same buffers in place
-            self.__dict__["_options_cache"] = (version, tuple(x.clone() for x in inputs), logits, term)
+        if logits.dim() != 3:
+            logits = logits.reshape(n, K, A)
+        if term.dim() != 2:
+            term = term.reshape(n, K)
+        if cache and inputs is not None:
+            entries = _cache_entries(inputs)  # None (no caching) when an input is missing or not a tensor
+            if entries is not None:
+                self.__dict__["_options_cache"] = (entries, self._params_version(), logits, term)
         return logits, term
 
     def _call_options(
-        self, tensordict: TensorDictBase, inputs: tuple[torch.Tensor, ...] | None
+        self, tensordict: TensorDictBase, inputs: list[torch.Tensor] | None
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         options = self.options
         if (
@@ -345,112 +397,150 @@ class OptionExecutor(Transform):
         """Whether the level below waits for an action (no lower option running)."""
         if self.lower_option_key is None:
             return True
-        return tensordict.get(self.lower_option_key).reshape(shape) < 0
+        return _get(tensordict, self.lower_option_key).reshape(shape) < 0
+
+    def _decode(self, action: torch.Tensor, consts: _StepConstants) -> torch.Tensor:
+        """The option that ``action`` starts at a decision (``-1`` for a primitive action).
+
+        The table lookup is also the range check: ``gather`` bounds-checks its indices (negative ones
+        included) in the same kernel, so valid actions cost no extra op and no host-device sync. On an
+        accelerator, where the lookup would only fail with a device-side assert, the range is asserted
+        asynchronously first (``torch._assert_async``, with the same message).
+        """
+        index = action if action.dim() == 1 else action.reshape(-1)
+        if index.dtype is not torch.int64:
+            index = index.long()
+        if not consts.cpu:
+            torch._assert_async(((index >= 0) & (index < consts.n_aug)).all(), self._range_message(None))
+        try:
+            option = consts.decode.gather(0, index)
+        except RuntimeError:
+            lo, hi = (int(v) for v in torch.aminmax(index))
+            if lo < 0 or hi >= consts.n_aug:
+                raise ValueError(self._range_message((lo, hi))) from None
+            raise
+        return option if consts.flat else option.view(consts.shape)
+
+    def _range_message(self, got: tuple[int, int] | None) -> str:
+        n_aug = self.num_augmented_actions
+        message = (
+            f"OptionExecutor: action out of range, expected integers in [0, {n_aug}) "
+            f"({self.num_actions * self.primitive_actions} primitive actions + {self.num_options} options)"
+        )
+        return message + (f", got values in [{got[0]}, {got[1]}]." if got is not None else ".")
+
+    def _check_action_range(self, action: torch.Tensor) -> None:
+        """Raises a ``ValueError`` naming the expected range if ``action`` holds an out-of-range index."""
+        self._decode(action, self._constants(action.device))
 
     # ------------------------------------------------------------ env hooks
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # the option is chosen with the action at s_t and acts at s_t
-        action = tensordict.get(self.action_key)
-        running = tensordict.get(self.option_key, None)
+        # the option is chosen with the action at s_t and acts at s_t. Per-step code: a fixed sequence of
+        # small tensor ops (masks, no branch on tensor values), no host-device sync, unvalidated tensordict
+        # writes; the options' outputs come from the previous step's _step (see _evaluate_options)
+        action = _get(tensordict, self.action_key)
+        running = _get(tensordict, self.option_key)
         if running is None:
             raise KeyError(
                 f"OptionExecutor: the running-option entry {self.option_key!r} is missing from the input of "
                 "env.step. Reset the env first and pass the tensordict returned by reset/step_mdp."
             )
-        self._check_action_range(action)
-        A = self.num_actions
+        consts = self.__dict__.get("_consts")
+        if consts is None or consts.device != action.device:
+            consts = self._constants(action.device)
+        started = self._decode(action, consts)  # also the range check
         decision = running < 0
         if self.lower_option_key is not None:
             lower_ready = self._lower_ready(tensordict, action.shape)
             decision = decision & lower_ready
-        # primitive actions become negative "options" -A .. -1, clamped to -1 (none) for the record
-        option = torch.where(decision, action - A if self.primitive_actions else action, running)
+        option = torch.where(decision, started, running)  # -1: the policy's primitive action runs
 
-        logits, _ = self._evaluate_options(tensordict)
-        logits = logits[self._row_offsets(logits) + option.clamp_min(0).view(-1)]  # [N, A] of the running option
+        logits = self._evaluate_options(tensordict, consts)[0]
+        # the running option's row for each env; option -1 picks row K-1, whose draw is then not used
+        logits = logits[consts.arange, option if consts.flat else option.reshape(-1)]
         if self.greedy:
             option_action = logits.argmax(-1)
         else:
-            # inverse-CDF draw with one uniform per env: fewer kernels than torch.multinomial. The last
-            # CDF entry is left out so that rounding (CDF ending below u) cannot give an action >= A
-            u = torch.rand((logits.shape[0], 1), generator=self._rng(), device=logits.device)
-            cdf = logits.softmax(-1).cumsum(-1)[:, :-1].contiguous()
-            option_action = torch.searchsorted(cdf, u, right=True).squeeze(-1)
-        option_action = option_action.view(action.shape).to(action.dtype)
+            # inverse-CDF draw with one uniform per env: fewer kernels than torch.multinomial; the clamp keeps
+            # rounding (a CDF ending below u) from giving an action >= A. The uniforms fill a buffer that no
+            # output references (the same draws as torch.rand)
+            generator = self._generator if self._generator is not None else self._rng()
+            u = consts.uniform.uniform_(generator=generator)
+            if u.dtype is not logits.dtype:  # e.g. float64 options
+                u = u.to(logits.dtype)
+            option_action = torch.searchsorted(logits.softmax(-1).cumsum(-1), u, right=True)
+            option_action = option_action.clamp_max_(consts.A - 1).view(-1)
+        if not consts.flat:
+            option_action = option_action.view(consts.shape)
+        if option_action.dtype is not action.dtype:
+            option_action = option_action.to(action.dtype)
         if self.lower_option_key is None:
             # a running option always acts; otherwise this is a decision for a primitive action
-            executed = torch.where(option >= 0, option_action, action)
+            executed = torch.where(option >= 0, option_action, action) if self.primitive_actions else option_action
         else:
             # call-and-return: this level acts only when the level below waits for an action; otherwise its
             # output is ignored below and any valid action is passed
             acting = (option >= 0) & lower_ready
-            passthrough = action.clamp_max(A - 1) if self.primitive_actions else torch.zeros_like(action)
+            passthrough = action.clamp_max(consts.A - 1) if self.primitive_actions else torch.zeros_like(action)
             executed = torch.where(acting, option_action, passthrough)
 
         # tensordict is the shallow copy given to the env below: the policy's action stays in the data. The
         # records are stashed under this level's keys: a lower executor in the same Compose rewrites the action
-        tensordict.set(self.action_key, executed)
-        tensordict.set(self.executed_action_key, executed)
-        tensordict.set(self.executed_option_key, option.clamp_min(_NO_OPTION))
-        tensordict.set(self.decision_key, decision)
+        _set(tensordict, self.action_key, executed)
+        _set(tensordict, self.executed_action_key, executed)
+        _set(tensordict, self.executed_option_key, option)
+        _set(tensordict, self.decision_key, decision)
         return tensordict
 
-    def _row_offsets(self, table: torch.Tensor) -> torch.Tensor:
-        """``[0, K, 2K, ...]``: row ``i`` of a flattened ``[N, K, ...]`` table starts at ``i * K``."""
-        offsets = self.__dict__.get("_offsets")
-        n = table.shape[0] // self.num_options
-        if offsets is None or offsets.shape[0] != n or offsets.device != table.device:
-            offsets = torch.arange(n, device=table.device) * self.num_options
-            self.__dict__["_offsets"] = offsets
-        return offsets
-
-    def _check_action_range(self, action: torch.Tensor) -> None:
-        lo, hi = torch.aminmax(action)
-        lo, hi, n_aug = int(lo), int(hi), self.num_augmented_actions
-        if lo < 0 or hi >= n_aug:
-            raise ValueError(
-                f"OptionExecutor: action out of range, expected integers in [0, {n_aug}) "
-                f"({self.num_actions * self.primitive_actions} primitive actions + {self.num_options} "
-                f"options), got values in [{lo}, {hi}]."
-            )
-
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        executed = tensordict.get(self.executed_action_key)
-        option = tensordict.get(self.executed_option_key)
-        shape = executed.shape
-        # the termination of the running option is evaluated at s_{t+1}
-        _, term_logits = self._evaluate_options(next_tensordict, cache=True)
-        term_logits = term_logits[self._row_offsets(term_logits) + option.clamp_min(0).view(-1)].view(shape)
-        terminate = torch.rand(shape, generator=self._rng(), device=term_logits.device) < term_logits.sigmoid()
+        option = _get(tensordict, self.executed_option_key)
+        consts = self.__dict__.get("_consts")
+        if consts is None or consts.device != option.device:
+            consts = self._constants(option.device)
+        flat_option = option if consts.flat else option.reshape(-1)
+        # the termination of the running option is evaluated at s_{t+1}; these options outputs are kept for
+        # the option's action at the next step
+        term_logits = self._evaluate_options(next_tensordict, consts, cache=True)[1]
+        # option -1 (primitive) picks column K-1: its draw is not used, the option stays -1
+        term_logits = term_logits[consts.arange, flat_option]
+        # terminate w.p. sigmoid(logit); the uniforms fill a buffer that no output references
+        generator = self._generator if self._generator is not None else self._rng()
+        terminate = consts.coin.uniform_(generator=generator) < term_logits.sigmoid()
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
-            terminate = terminate & self._lower_ready(next_tensordict, shape)
+            terminate = terminate & self._lower_ready(next_tensordict, terminate.shape)
         # the end of an episode ends the option too; option == -1 stays -1
-        ends = terminate | next_tensordict.get(self.done_key).view(shape)
-        next_tensordict.set(self.option_key, torch.where(ends, _NO_OPTION, option))
-        next_tensordict.set(self.executed_action_key, executed)
-        next_tensordict.set(self.executed_option_key, option)
-        next_tensordict.set(self.decision_key, tensordict.get(self.decision_key))
+        ends = terminate | _get(next_tensordict, self.done_key).view(-1)
+        if not consts.flat:
+            ends = ends.view(consts.shape)
+        _set(next_tensordict, self.option_key, torch.where(ends, consts.no_option, option))
+        _set(next_tensordict, self.executed_action_key, _get(tensordict, self.executed_action_key))
+        _set(next_tensordict, self.executed_option_key, option)
+        _set(next_tensordict, self.decision_key, _get(tensordict, self.decision_key))
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         self._register_seed_hook()
         spec = self._base_action_spec()
         shape, device = spec.shape, spec.device
-        reset = tensordict.get(_reset_key(self.done_key), None) if tensordict is not None else None
-        reset = torch.ones(shape, dtype=torch.bool, device=device) if reset is None else reset.reshape(shape)
+        reset = _get(tensordict, _reset_key(self.done_key)) if tensordict is not None else None
+        if reset is not None:
+            reset = reset.reshape(shape)
         # a new episode starts with a decision; the records are empty (-1 / False) until its first step.
         # Only envs flagged by "_reset" change (TorchRL also merges non-reset envs back after _reset)
-        entries = {
-            self.option_key: (_NO_OPTION, torch.int64),
-            self.executed_option_key: (_NO_OPTION, torch.int64),
-            self.executed_action_key: (_NO_OPTION, spec.dtype),
-            self.decision_key: (False, torch.bool),
-        }
-        for key, (default, dtype) in entries.items():
-            fresh = torch.full(shape, default, dtype=dtype, device=device)
-            prev = tensordict.get(key, None) if tensordict is not None else None
-            tensordict_reset.set(key, fresh if prev is None else torch.where(reset, fresh, prev.reshape(shape)))
+        entries = (
+            (self.option_key, _NO_OPTION, torch.int64),
+            (self.executed_option_key, _NO_OPTION, torch.int64),
+            (self.executed_action_key, _NO_OPTION, spec.dtype),
+            (self.decision_key, False, torch.bool),
+        )
+        for key, default, dtype in entries:
+            prev = _get(tensordict, key) if tensordict is not None and reset is not None else None
+            if prev is None:
+                value = torch.full(shape, default, dtype=dtype, device=device)
+            else:
+                value = torch.where(reset, default, prev.reshape(shape))
+            _set(tensordict_reset, key, value)
         return tensordict_reset
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -464,6 +554,54 @@ class OptionExecutor(Transform):
             f"{type(self).__name__}(num_options={self.num_options}, primitive_actions={self.primitive_actions}, "
             f"greedy={self.greedy}, level={self.level}, option_key={self.option_key!r})"
         )
+
+
+class _StepConstants(NamedTuple):
+    device: torch.device
+    cpu: bool
+    A: int  # actions of the env below
+    K: int  # options
+    n_aug: int  # policy-facing actions
+    shape: torch.Size  # action shape (the env's batch)
+    n: int  # envs in the batch
+    flat: bool  # the action shape is [n]: no reshapes
+    decode: torch.Tensor  # [n_aug]: augmented action -> option started (-1: primitive)
+    arange: torch.Tensor  # [n]
+    no_option: torch.Tensor  # -1, 0-dim
+    uniform: torch.Tensor  # [n, 1] buffer of the action draws (never returned)
+    coin: torch.Tensor  # [n] buffer of the termination draws (never returned)
+
+
+def _get(tensordict: TensorDictBase, key: NestedKey) -> torch.Tensor | None:
+    """``tensordict.get(key, None)`` for an unravelled key, without the public method's overhead."""
+    if type(key) is str:
+        return tensordict._get_str(key, None)
+    return tensordict._get_tuple(key, None)
+
+
+def _set(tensordict: TensorDictBase, key: NestedKey, value: torch.Tensor) -> None:
+    """``tensordict.set(key, value)`` without validation, for values built with the env's batch shape."""
+    if type(tensordict) is TensorDict:
+        if type(key) is str:
+            tensordict._set_str(key, value, inplace=False, validated=True, ignore_lock=False, non_blocking=False)
+        else:
+            tensordict._set_tuple(key, value, inplace=False, validated=True, non_blocking=False)
+    else:
+        tensordict.set(key, value)
+
+
+def _cache_entries(tensors: list) -> list[tuple] | None:
+    """``(tensor, version, None)`` per input, or ``(tensor, None, copy)`` for an inference tensor (it has no
+    version counter, so its values are compared); ``None`` if an input is missing or not a tensor."""
+    entries = []
+    for x in tensors:
+        if not isinstance(x, torch.Tensor):
+            return None
+        try:
+            entries.append((x, x._version, None))
+        except RuntimeError:  # inference tensors do not track versions
+            entries.append((x, None, x.clone()))
+    return entries
 
 
 def _reset_key(done_key: NestedKey) -> NestedKey:
