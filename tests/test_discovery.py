@@ -16,7 +16,7 @@ from torchrl_options import (
     save_options,
     viterbi,
 )
-from torchrl_options.discovery import kmeans
+from torchrl_options.discovery import converged_at, fit_ddo, kmeans, TabulatedDDO, unique_rows
 from torchrl_options.testing import label_accuracy, planted_corridor_demonstrations
 
 
@@ -149,3 +149,105 @@ def test_save_rejects_hand_written_modules_and_load_rejects_foreign_files(tmp_pa
     torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not an options file"):
         load_options(tmp_path / "foreign.pt")
+
+
+def _corridor_accuracy(options, data):
+    fb, _ = _posterior(options, data)
+    return label_accuracy(most_likely_options(fb.u), data["true_option"])
+
+
+def test_tol_stops_early_and_still_recovers_the_planted_options():
+    data = planted_corridor_demonstrations(32, 100, seed=0)
+    kw = dict(num_cells=8, lr=0.05, seed=0, progress=False, return_info=True)
+    result = discover_options(data, 2, num_iterations=1000, m_steps=5, tol=1e-3, patience=10, **kw)
+    assert result.converged and len(result.history) < 300, len(result.history)
+    assert _corridor_accuracy(result.options, data) >= 0.9
+    ll = [h["log_likelihood_per_step"] for h in result.history]
+    assert converged_at(ll, 1e-3, 10) == len(ll) - 1
+    # without tol: every iteration runs and converged is None
+    plain = discover_options(data, 2, num_iterations=7, **kw)
+    assert len(plain.history) == 7 and plain.converged is None
+
+
+def test_m_steps_recovers_the_planted_options_in_fewer_e_steps():
+    data = planted_corridor_demonstrations(32, 100, seed=0)
+    kw = dict(num_cells=8, lr=0.05, seed=0, progress=False, return_info=True)
+    em = discover_options(data, 2, num_iterations=30, m_steps=10, **kw)
+    eg = discover_options(data, 2, num_iterations=30, m_steps=1, **kw)
+    assert _corridor_accuracy(em.options, data) >= 0.9
+    assert em.final_log_likelihood_per_step > eg.final_log_likelihood_per_step
+    # m_steps=1 is the plain Expectation-Gradient: the first step is the gradient of DDOLoss
+    assert eg.history[0]["loss_ddo"] == pytest.approx(em.history[0]["loss_ddo"])
+
+
+@pytest.mark.parametrize("meta", [False, True])
+def test_tabulated_e_step_matches_ddo_loss(meta):
+    """Diagnostics and gradient of the tabulated E-step / G-step objective equal DDOLoss's, with padding, a terminal
+    flag and a learned meta-control, for a batch and for a minibatch of its rows."""
+    data = planted_corridor_demonstrations(6, 40, seed=1)
+    data["collector", "mask"][2, 30:] = False
+    data["next", "terminated"] = torch.zeros(6, 40, 1, dtype=torch.bool)
+    data["next", "terminated"][0, -1] = True
+    torch.manual_seed(0)
+    loss = DDOLoss(OptionsMLP(2, 2, 3, num_cells=4), MetaControlMLP(2, 3, num_cells=4) if meta else None)
+    table = TabulatedDDO(loss, data)
+    assert (table.num_states, table.num_pairs) == (10, 20)
+    rows = torch.tensor([4, 2, 0])
+    for tab, batch in ((table, data), (table.subset(rows), data[rows])):
+        out = loss(batch)
+        out["loss_ddo"].backward()
+        expected = [p.grad.clone() for p in loss.parameters()]
+        loss.zero_grad()
+        record, objective = tab.e_step()
+        objective().backward()
+        for key in loss.out_keys:
+            torch.testing.assert_close(record[key], out[key].detach())
+        for p, g in zip(loss.parameters(), expected):
+            torch.testing.assert_close(p.grad, g, atol=1e-6, rtol=1e-5)
+        loss.zero_grad()
+
+
+def test_unique_rows_is_exact():
+    x = torch.tensor([[0.1, 1.0], [0.1, 1.0 + 1e-7], [0.1, 1.0]])
+    inverse, first = unique_rows([x, torch.tensor([3, 3, 3], dtype=torch.uint8)])
+    assert inverse.tolist()[0] == inverse.tolist()[2] != inverse.tolist()[1] and len(first) == 2
+
+
+def test_lr_scheduler_is_stepped_once_per_iteration():
+    data = planted_corridor_demonstrations(4, 20, seed=0)
+    seen = []
+
+    def scheduler(opt):
+        seen.append(opt)
+        return torch.optim.lr_scheduler.StepLR(opt, step_size=1, gamma=0.5)
+
+    discover_options(data, 2, num_iterations=3, m_steps=2, lr=0.4, lr_scheduler=scheduler, progress=False)
+    assert seen[0].param_groups[0]["lr"] == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(m_steps=0), "m_steps"),
+        (dict(m_steps=1.5), "m_steps"),
+        (dict(tol=-1e-3), "tol"),
+        (dict(tol="small"), "tol"),
+        (dict(tol=1e-3, patience=0), "patience"),
+        (dict(num_iterations=-1), "num_iterations"),
+        (dict(lr_scheduler="cosine"), "lr_scheduler"),
+    ],
+)
+def test_bad_schedule_arguments_name_the_argument(kwargs, match):
+    data = planted_corridor_demonstrations(2, 5)
+    with pytest.raises(ValueError, match=match):
+        discover_options(data, 2, progress=False, **kwargs)
+
+
+def test_fit_ddo_needs_an_e_step_for_several_g_steps():
+    data = planted_corridor_demonstrations(2, 5)
+    loss = DDOLoss(OptionsMLP(2, 2, 2))
+    opt = torch.optim.Adam(loss.parameters())
+    with pytest.raises(ValueError, match="m_steps"):
+        fit_ddo(loss, opt, lambda it: data, 2, m_steps=3, progress=False)
+    with pytest.raises(ValueError, match="patience"):
+        converged_at([0.0, 1.0], 1e-3, 0)

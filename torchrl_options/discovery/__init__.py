@@ -1,14 +1,25 @@
 """Option discovery for users: one-call DDO, initialisation, and saving/loading options."""
-from torchrl_options.discovery.discover import as_trajectory_batch, discover_options, DiscoveryResult
+from torchrl_options.discovery.discover import (
+    as_trajectory_batch,
+    converged_at,
+    discover_options,
+    DiscoveryResult,
+    fit_ddo,
+)
 from torchrl_options.discovery.initialization import kmeans, pretrain_on_clusters
 from torchrl_options.discovery.serialization import load_options, save_options
+from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
 
 __all__ = [
     "as_trajectory_batch",
+    "converged_at",
     "discover_options",
     "DiscoveryResult",
+    "fit_ddo",
     "kmeans",
     "load_options",
     "pretrain_on_clusters",
     "save_options",
+    "TabulatedDDO",
+    "unique_rows",
 ]

@@ -9,14 +9,19 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.discovery.tabulated import expected_counts, tabulate_states
 from torchrl_options.discovery.discover import (
+    _check_m_steps,
+    _check_tol,
     _infer_in_features,
     as_trajectory_batch,
+    converged_at,
     discover_options,
     fit_ddo,
     minibatch,
 )
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
+from torchrl_options.hierarchy.inference import hierarchical_forward_backward
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
 
@@ -33,11 +38,15 @@ class HierarchyDiscoveryResult:
 
     Attributes:
         hierarchy (OptionHierarchy): the discovered levels (with the meta-controls used to discover them).
-        history (list of list of dict): per level, per iteration, ``loss`` and the loss diagnostics.
+        history (list of list of dict): per level, per iteration, ``loss_ddo`` and the loss diagnostics (of the
+            start that was kept, with ``restarts``).
+        restart_log_likelihoods (list of list of float): per level, with ``restarts > 1``, each start's
+            log-likelihood per step after its ``restart_iterations`` (empty lists otherwise).
     """
 
     hierarchy: OptionHierarchy
     history: list[list[dict]] = field(default_factory=list)
+    restart_log_likelihoods: list[list[float]] = field(default_factory=list)
 
 
 def _per_level(value, num_levels: int, name: str) -> list:
@@ -62,7 +71,10 @@ def discover_hierarchy(
     architecture: str = "separate",
     init: str = "random",
     num_iterations: int | Sequence[int] = 500,
-    restarts: int = 1,
+    m_steps: int | Sequence[int] = 1,
+    tol: float | None = None,
+    patience: int = 20,
+    restarts: int | Sequence[int] = 1,
     restart_iterations: int = 50,
     batch_size: int | None = None,
     optimizer: Callable[..., torch.optim.Optimizer] | None = None,
@@ -95,14 +107,22 @@ def discover_hierarchy(
         obs_keys, action_key, num_cells, activation, architecture: as in :func:`~torchrl_options.discover_options`,
             for every level's modules.
         init (str): level-1 initialisation, ``"random"`` or ``"kmeans"``.
-        num_iterations (int or sequence of int): gradient steps, for all levels or per level. Defaults to 500.
-        restarts (int): levels above 1 are fitted from ``restarts`` random initialisations, each trained for
-            ``restart_iterations`` steps; the one with the highest log-likelihood then gets the remaining
-            ``num_iterations - restart_iterations`` steps. Likelihood training of a level over lower options
-            has local optima (an option left unused, two merged), which restarts avoid. Defaults to 1.
-        restart_iterations (int): the steps given to each initialisation when ``restarts > 1``. Defaults to 50.
+        num_iterations (int or sequence of int): the most iterations (E-steps), for all levels or per level.
+            Defaults to 500.
+        m_steps (int or sequence of int): optimizer steps per E-step, for all levels or per level: 1 (default) is
+            Expectation-Gradient, more a generalised EM (see :func:`~torchrl_options.discover_options`).
+        tol (float, optional): stopping rule of every level: stop once its log-likelihood per step has gained less
+            than ``tol`` nats over the last ``patience`` iterations. ``None`` (default): run all iterations.
+        patience (int): the stopping rule's window, in iterations. Defaults to 20.
+        restarts (int or sequence of int): every level (or each level, from a list) is fitted from ``restarts``
+            random initialisations, each trained for at most ``restart_iterations`` iterations; the one with the
+            highest training log-likelihood (label-free model selection) then gets the rest of its
+            ``num_iterations``. Likelihood training has local optima (an option left unused, two merged), which
+            restarts avoid. Defaults to 1.
+        restart_iterations (int): the iterations given to each start when ``restarts > 1`` (capped at the level's
+            ``num_iterations``). Defaults to 50.
         batch_size (int, optional): trajectories per minibatch; ``None`` uses all.
-        optimizer: a factory called as ``optimizer(params, lr=lr)``, once per level. Defaults to Adam.
+        optimizer: a factory called as ``optimizer(params, lr=lr)``, once per level and start. Defaults to Adam.
         lr (float): learning rate. Defaults to 1e-2.
         device: where to train. Defaults to the data's device.
         seed (int, optional): seeds initialisation and minibatch order.
@@ -115,8 +135,9 @@ def discover_hierarchy(
         The :class:`OptionHierarchy` (or a :class:`HierarchyDiscoveryResult` with ``return_info=True``).
 
     Raises:
-        ValueError: naming the argument, for empty or non-positive ``num_options``, a ``meta_control`` or
-            ``num_iterations`` list of the wrong length, or a ``num_actions`` that disagrees with the hierarchy.
+        ValueError: naming the argument, for empty or non-positive ``num_options``, a per-level list of the wrong
+            length, non-positive ``m_steps``, ``restarts`` or ``patience``, a negative ``tol``, or a ``num_actions``
+            that disagrees with the hierarchy.
 
     Examples:
         >>> from torchrl_options.testing.planted_hierarchy import planted_two_level_demonstrations
@@ -134,6 +155,19 @@ def discover_hierarchy(
         if m not in ("uniform", "learned"):
             raise ValueError(f"meta_control must be 'uniform' or 'learned' (or a list of them), got {m!r}.")
     iterations = _per_level(num_iterations, levels, "num_iterations")
+    m_steps = _per_level(m_steps, levels, "m_steps")
+    restarts = _per_level(restarts, levels, "restarts")
+    for n in iterations:
+        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+            raise ValueError(f"num_iterations must be ints >= 0, got {n!r}.")
+    for m in m_steps:
+        _check_m_steps(m)
+    _check_tol(tol, patience)
+    for n, n_iter in zip(restarts, iterations):
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise ValueError(f"restarts must be positive ints, got {n!r}.")
+        if n > 1 and (not isinstance(restart_iterations, int) or restart_iterations < 1):
+            raise ValueError(f"restart_iterations must be a positive int when restarts > 1, got {restart_iterations!r}.")
     obs_keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
     generator = torch.Generator()
     if seed is not None:
@@ -158,26 +192,25 @@ def discover_hierarchy(
     hierarchy = hierarchy.to(device)
     in_features = _infer_in_features(data, obs_keys)
     history: list[list[dict]] = []
+    restart_lls: list[list[float]] = []
 
-    for d, (K, meta, n_iter) in enumerate(zip(num_options, metas, iterations)):
+    for d, (K, meta, n_iter, m, n_restarts) in enumerate(zip(num_options, metas, iterations, m_steps, restarts)):
         level = hierarchy.num_levels + 1
         if level == 1:
             result = discover_options(
                 data, K, meta_control=meta, num_actions=num_actions, obs_keys=obs_keys, action_key=action_key,
                 num_cells=num_cells, activation=activation, architecture=architecture, init=init,
-                num_iterations=n_iter, batch_size=batch_size, optimizer=optimizer, lr=lr, device=device,
-                seed=None if seed is None else seed + d, progress=progress, return_info=True, log_every=log_every,
-            )
+                num_iterations=n_iter, m_steps=m, tol=tol, patience=patience, restarts=n_restarts,
+                restart_iterations=min(restart_iterations, n_iter), batch_size=batch_size, optimizer=optimizer, lr=lr,
+                device=device, seed=None if seed is None else seed + d, progress=progress, return_info=True,
+                log_every=log_every,
+            )  # fmt: skip
             hierarchy.append(result.options, meta_control=result.meta_control)
             history.append(result.history)
+            restart_lls.append(result.restart_log_likelihoods)
             continue
-        if restarts < 1 or (restarts > 1 and not 0 < restart_iterations <= n_iter):
-            raise ValueError(
-                f"restarts must be >= 1 and restart_iterations in [1, num_iterations], got {restarts} and "
-                f"{restart_iterations}."
-            )
         candidates = []
-        for _ in range(restarts):
+        for r in range(n_restarts):
             options = OptionsMLP(
                 in_features, hierarchy.action_space_sizes[-1], K, num_cells=num_cells, activation=activation,
                 architecture=architecture, in_keys=obs_keys,
@@ -190,30 +223,128 @@ def discover_hierarchy(
             loss_module = HierarchicalDDOLoss(options, hierarchy, meta_module, diagnostics=False)
             loss_module.set_keys(action=action_key)
             params = list(options.parameters()) + (list(meta_module.parameters()) if meta_module is not None else [])
-            opt = torch.optim.Adam(params, lr=lr) if optimizer is None else optimizer(params, lr=lr)
-            first = restart_iterations if restarts > 1 else n_iter
-            records = _train(loss_module, opt, data, first, batch_size, generator, progress, log_every, level)
-            candidates.append((records[-1]["log_likelihood_per_step"], loss_module, opt, records))
-        best = max(range(restarts), key=lambda i: candidates[i][0])
-        _, loss_module, opt, records = candidates[best]
-        if restarts > 1:
-            logger.info("level %d: restart %d of %d has the best log-likelihood per step (%.4f)", level, best,
-                        restarts, candidates[best][0])
-            records += _train(loss_module, opt, data, n_iter - restart_iterations, batch_size, generator, progress,
-                              log_every, level)
+            opt = torch.optim.Adam(params, lr=lr, foreach=True) if optimizer is None else optimizer(params, lr=lr)
+            first = min(restart_iterations, n_iter) if n_restarts > 1 else n_iter
+            records = _train(loss_module, opt, data, first, batch_size, generator, progress, log_every, level,
+                             m_steps=m, tol=tol, patience=patience)  # fmt: skip
+            candidates.append((records[-1]["log_likelihood_per_step"] if records else float("-inf"), r, loss_module,
+                               opt, records))  # fmt: skip
+        _, best, loss_module, opt, records = max(candidates, key=lambda c: (c[0], -c[1]))
+        if n_restarts > 1:
+            logger.info("level %d: start %d of %d has the best log-likelihood per step (%s)", level, best + 1,
+                        n_restarts, ", ".join(f"{c[0]:.4f}" for c in candidates))  # fmt: skip
+            stopped = tol is not None and converged_at([h["log_likelihood_per_step"] for h in records], tol, patience)
+            if not stopped and n_iter > len(records):
+                records = records + _train(loss_module, opt, data, n_iter - len(records), batch_size, generator,
+                                           progress, log_every, level, m_steps=m, tol=tol, patience=patience)  # fmt: skip
+        restart_lls.append([c[0] for c in candidates] if n_restarts > 1 else [])
         history.append(records)
         hierarchy.append(loss_module.options, meta_control=loss_module.meta_control)
     if return_info:
-        return HierarchyDiscoveryResult(hierarchy=hierarchy, history=history)
+        return HierarchyDiscoveryResult(hierarchy=hierarchy, history=history, restart_log_likelihoods=restart_lls)
     return hierarchy
 
 
-def _train(loss_module, opt, data, num_iterations, batch_size, generator, progress, log_every, level) -> list[dict]:
+class HierarchicalEStep:
+    """The E-step of :class:`HierarchicalDDOLoss` for :func:`~torchrl_options.discovery.discover.fit_ddo`, with a
+    G-step objective that several optimizer steps can reuse (a generalised EM).
+
+    ``estep(batch)`` runs the exact hierarchical forward-backward once and returns ``(record, objective)``:
+    ``record`` holds ``loss_ddo`` and ``log_likelihood_per_step`` (and, when ``loss_module.diagnostics`` is on, the
+    loss's other diagnostics); ``objective()`` is ``-sum(g * p(theta)) / n_steps`` over the trained level's
+    log-probabilities ``p`` (control, termination, continuation and, if learned, meta-control), with ``g`` their
+    gradients at the E-step: the posterior expected counts of each choice. Its gradient at the E-step's parameters
+    is the gradient of the log-likelihood (Fox et al., 2017, section 4.2) and, since the likelihood is a sum over
+    call-stack histories of products of these probabilities, every step that increases it increases the
+    likelihood at least as much.
+
+    Args:
+        loss_module (HierarchicalDDOLoss): the loss (reduction ``"mean"``).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_options import OptionsMLP
+        >>> from torchrl_options.hierarchy import OptionHierarchy
+        >>> from torchrl_options.testing.planted_hierarchy import planted_two_level_demonstrations
+        >>> data = planted_two_level_demonstrations(4, 20)
+        >>> loss = HierarchicalDDOLoss(OptionsMLP(2, 8, 2), OptionHierarchy(4, [OptionsMLP(2, 4, 4)]))
+        >>> record, objective = HierarchicalEStep(loss)(data)
+        >>> torch.allclose(record["loss_ddo"], loss(data)["loss_ddo"])
+        True
+        >>> objective().backward()
+    """
+
+    def __init__(self, loss_module: HierarchicalDDOLoss) -> None:
+        if loss_module.reduction != "mean":
+            raise ValueError(f"loss_module must use reduction='mean', got {loss_module.reduction!r}.")
+        self.loss_module = loss_module
+
+    def __call__(self, batch: TensorDictBase) -> tuple[dict, Callable[[], torch.Tensor]]:
+        loss = self.loss_module
+        keys = loss.tensor_keys
+        options, meta_control = loss.options, loss.meta_control
+        if loss.diagnostics:
+            with torch.no_grad():
+                record = dict(loss(batch).items())
+        with torch.no_grad():
+            p = loss.log_probabilities(batch)
+        mask = p["mask"]
+        trained = [p["log_pi"][-1], p["log_term"][-1], p["log_cont"][-1]]
+        if meta_control is not None:
+            trained.append(p["log_eta"])
+        leaves = [x.detach().requires_grad_() for x in trained]
+        log_eta = leaves[3] if meta_control is not None else p["log_eta"]
+        with torch.enable_grad():
+            post = hierarchical_forward_backward(
+                p["action"], [*p["log_pi"][:-1], leaves[0]], [*p["log_term"][:-1], leaves[1]],
+                [*p["log_cont"][:-1], leaves[2]], log_eta, mask, p["terminal"], validate=False, backend=loss.backend,
+            )  # fmt: skip
+            grads = torch.autograd.grad(post.log_likelihood.sum(), leaves)
+        n = mask.sum()
+        ll = post.log_likelihood.detach().sum() / n
+        if not loss.diagnostics:
+            record = {"loss_ddo": -ll, "log_likelihood_per_step": ll}
+
+        # the trained level's networks run once per distinct state of the batch
+        batch = batch if batch.ndim == 2 else batch.unsqueeze(0)
+        option_keys = list(options.in_keys)
+        current = batch.select(*option_keys)
+        following = batch.get("next").select(*option_keys)
+        table, state_index, next_index = tabulate_states(option_keys, mask, current, following)
+        U = table.batch_size[0]
+        n_pi = expected_counts(state_index, grads[0], mask, U)
+        n_term = expected_counts(next_index, grads[1], mask, U)
+        n_cont = expected_counts(next_index, grads[2], mask, U)
+        if meta_control is not None:
+            meta_keys = list(meta_control.in_keys)
+            meta_table, meta_index, _ = tabulate_states(meta_keys, mask, batch.select(*meta_keys))
+            n_eta = expected_counts(meta_index, grads[3], mask, meta_table.batch_size[0])
+
+        def objective() -> torch.Tensor:
+            out = options(table.clone(False))
+            log_pi = out.get(keys.option_logits).log_softmax(-1)
+            term_logits = out.get(keys.termination_logits)
+            # zero counts times -inf (a choice an option cannot make) contribute nothing
+            q = torch.where(n_pi != 0, n_pi * log_pi, 0.0).sum()
+            q = q + (n_term * torch.nn.functional.logsigmoid(term_logits)).sum()
+            q = q + (n_cont * torch.nn.functional.logsigmoid(-term_logits)).sum()
+            if meta_control is not None:
+                q = q + (n_eta * meta_control(meta_table.clone(False)).get(keys.meta_logits).log_softmax(-1)).sum()
+            return -q / n
+
+        return record, objective
+
+
+def _train(
+    loss_module, opt, data, num_iterations, batch_size, generator, progress, log_every, level, *, m_steps=1, tol=None,
+    patience=20,
+) -> list[dict]:
     def set_diagnostics(full: bool) -> None:
         loss_module.diagnostics = full
 
     records = fit_ddo(
         loss_module, opt, lambda it: minibatch(data, batch_size, generator), num_iterations,
+        e_step=HierarchicalEStep(loss_module), m_steps=m_steps, tol=tol, patience=patience,
         desc=f"DDO level {level}", progress=progress, log_every=log_every, set_diagnostics=set_diagnostics,
     )  # fmt: skip
     loss_module.diagnostics = True
