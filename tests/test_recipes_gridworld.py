@@ -56,7 +56,7 @@ def test_two_rooms_recipe_resumes(tmp_path):
     assert ran == ["supervised-A-seed0"]
     assert not (out / "summary.md").exists()
     summary = recipe.run(_cfg("two_rooms", out))
-    assert "episodes to a 10-episode mean return" in summary
+    assert "episodes to a 50-episode mean return" in summary
     ran = (out / "cells" / "ran.txt").read_text().split()
     assert sorted(ran) == sorted(["supervised-A-seed0", "supervised-O-seed0", "supervised-AO-seed0"])  # A not redone
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "O", "AO")])
