@@ -513,13 +513,15 @@ def discover_options(
             table = TabulatedDDO(loss_module, data) if table is None else table.for_loss(loss_module)
         return loss_module, opt, sched, table
 
+    unused_sample = [buffer is not None]  # the buffer sample drawn above, for the first iteration
+
     def train(loss_module, opt, sched, table, n_iterations, desc):
         def next_batch(it: int) -> TabulatedDDO:
             if buffer is not None:
-                first = data if it == 0 and not history_so_far else None
-                sample = first if first is not None else as_trajectory_batch(
-                    buffer.sample(), trajectory_key=trajectory_key
-                ).to(device)
+                if unused_sample[0]:
+                    unused_sample[0] = False
+                    return TabulatedDDO(loss_module, data)
+                sample = as_trajectory_batch(buffer.sample(), trajectory_key=trajectory_key).to(device)
                 return TabulatedDDO(loss_module, sample)
             rows = minibatch_rows(data.batch_size[0], batch_size, generator)
             return table if rows is None else table.subset(rows.to(device))
@@ -529,7 +531,6 @@ def discover_options(
             patience=patience, scheduler=sched, desc=desc, progress=progress, log_every=log_every,
         )  # fmt: skip
 
-    history_so_far: list[dict] = []
     table = None
     candidates = []
     for r in range(restarts):
@@ -549,8 +550,8 @@ def discover_options(
     if restarts > 1:
         logger.info("DDO: start %d of %d has the best log-likelihood per step (%s)", best + 1, restarts,
                     ", ".join(f"{x:.4f}" for x in restart_lls))  # fmt: skip
-        history_so_far = history
-        stopped = tol is not None and converged_at([h["log_likelihood_per_step"] for h in history], tol, patience)
+        lls = [h["log_likelihood_per_step"] for h in history]
+        stopped = tol is not None and converged_at(lls, tol, patience) is not None
         if not stopped and num_iterations > len(history):
             history = history + train(loss_module, opt, sched, table, num_iterations - len(history), "DDO")
     options, meta_module = loss_module.options, loss_module.meta_control

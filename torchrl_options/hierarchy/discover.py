@@ -233,7 +233,8 @@ def discover_hierarchy(
         if n_restarts > 1:
             logger.info("level %d: start %d of %d has the best log-likelihood per step (%s)", level, best + 1,
                         n_restarts, ", ".join(f"{c[0]:.4f}" for c in candidates))  # fmt: skip
-            stopped = tol is not None and converged_at([h["log_likelihood_per_step"] for h in records], tol, patience)
+            lls = [h["log_likelihood_per_step"] for h in records]
+            stopped = tol is not None and converged_at(lls, tol, patience) is not None
             if not stopped and n_iter > len(records):
                 records = records + _train(loss_module, opt, data, n_iter - len(records), batch_size, generator,
                                            progress, log_every, level, m_steps=m, tol=tol, patience=patience)  # fmt: skip
