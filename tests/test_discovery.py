@@ -251,3 +251,40 @@ def test_fit_ddo_needs_an_e_step_for_several_g_steps():
         fit_ddo(loss, opt, lambda it: data, 2, m_steps=3, progress=False)
     with pytest.raises(ValueError, match="patience"):
         converged_at([0.0, 1.0], 1e-3, 0)
+
+
+def test_restarts_keep_the_best_start_and_continue_training_it(monkeypatch):
+    """Restarts: each start gets ``restart_iterations``, the best by log-likelihood is kept and trained to
+    ``num_iterations``. The first start is made to look best, so the continuation must train that start's
+    networks (not the last start's) and the returned options must be the ones trained."""
+    import torchrl_options.discovery.discover as discover_module
+
+    calls = []
+    real_fit = discover_module.fit_ddo
+
+    def fit(loss_module, *args, **kwargs):
+        records = real_fit(loss_module, *args, **kwargs)
+        calls.append((loss_module, [dict(r) for r in records]))
+        if len(calls) == 1:  # the first start reports the best final log-likelihood
+            records[-1]["log_likelihood_per_step"] = 0.0
+        return records
+
+    monkeypatch.setattr(discover_module, "fit_ddo", fit)
+    data = planted_corridor_demonstrations(8, 40, seed=4)
+    result = discover_options(
+        data, 2, num_cells=4, num_iterations=25, restarts=3, restart_iterations=5, lr=0.05, seed=0,
+        progress=False, return_info=True,
+    )  # fmt: skip
+    assert len(calls) == 4  # three starts and the continuation
+    assert len(result.restart_log_likelihoods) == 3 and result.restart_log_likelihoods[0] == 0.0
+    first_module, first_records = calls[0]
+    continuation_module, continuation_records = calls[3]
+    assert continuation_module is first_module
+    assert result.options is first_module.options
+    assert len(result.history) == 25 and len(continuation_records) == 20
+    # the continuation starts where the first start stopped and improves it
+    with torch.no_grad():
+        ll = DDOLoss(result.options)(data)["log_likelihood_per_step"].item()
+    assert continuation_records[0]["log_likelihood_per_step"] > first_records[-1]["log_likelihood_per_step"] - 1e-3
+    assert ll > first_records[-1]["log_likelihood_per_step"] + 1e-3
+    assert ll == pytest.approx(continuation_records[-1]["log_likelihood_per_step"], abs=0.02)

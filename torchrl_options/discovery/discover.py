@@ -544,9 +544,9 @@ def discover_options(
         desc = f"DDO start {r + 1}/{restarts}" if restarts > 1 else "DDO"
         records = train(loss_module, opt, sched, table, n_first, desc)
         candidates.append((records[-1]["log_likelihood_per_step"] if records else float("-inf"), r, loss_module,
-                           opt, sched, records))  # fmt: skip
+                           opt, sched, table, records))  # fmt: skip
     restart_lls = [c[0] for c in candidates] if restarts > 1 else []
-    _, best, loss_module, opt, sched, history = max(candidates, key=lambda c: (c[0], -c[1]))
+    _, best, loss_module, opt, sched, table, history = max(candidates, key=lambda c: (c[0], -c[1]))
     if restarts > 1:
         logger.info("DDO: start %d of %d has the best log-likelihood per step (%s)", best + 1, restarts,
                     ", ".join(f"{x:.4f}" for x in restart_lls))  # fmt: skip
