@@ -3,7 +3,8 @@
 Compares its three exact backends on the same inputs, in one run: ``structured`` (the pop/push recursion over
 the tree of call stacks, T sequential steps), ``dense`` (S x S transition matrices, one log-space product per
 step) and ``chunked`` (the dense matrices multiplied time-parallel, about 2 sqrt(T) sequential steps; the
-``auto`` choice from 48 steps). The default shape is the four-rooms level-2 minibatch: 10 trajectories of 1000
+``auto`` choice from 48 steps while ``B T S^2 (D + 1) <= 2^24``: its float64 matrices are memory-bound, and the
+structured recursion wins on larger batches). The default shape is the four-rooms level-2 minibatch: 10 trajectories of 1000
 steps, 4 level-1 and 4 level-2 options (S = 20 call stacks).
 
 Prints the time of forward + gradient with respect to the top level's inputs (best of ``--repeats`` after a warm-up

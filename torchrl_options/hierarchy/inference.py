@@ -252,8 +252,8 @@ def hierarchical_forward_backward(
             in more, smaller operations, the faster on larger batches. ``"chunked"``: the dense matrices
             multiplied time-parallel (chunks of about ``sqrt(T)`` steps composed at once, then a scan over the
             chunks, in float64 with rescaling): about ``2 sqrt(T)`` sequential steps instead of ``T``, the
-            fastest on long trajectories. ``"auto"`` (default): chunked from 48 steps when the dense transition
-            tensor stays below 2^25 elements; otherwise dense when ``B S^2 (D + 1) <= 2^13``, else structured.
+            fastest on long trajectories of small batches. ``"auto"`` (default): chunked from 48 steps when
+            ``B T S^2 (D + 1) <= 2^24``; otherwise dense when ``B S^2 (D + 1) <= 2^13``, else structured.
             All are exact and give the same results (chunked recomputes with the structured recursion any row
             whose float64 products underflow to a zero likelihood).
 
@@ -355,6 +355,8 @@ _TINY_MATRIX = 1e-200
 _TINY_MESSAGE = 1e-100
 # ... and the chunked product of the dense matrices from this many steps (fewer sequential steps, same memory)
 _CHUNKED_MIN_STEPS = 48
+# its float64 step matrices are memory-bound: past about 2^24 elements the structured recursion is faster on a CPU
+_CHUNKED_MAX_ELEMENTS = 2**24
 
 
 def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, backend):
@@ -374,7 +376,7 @@ def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, siz
     if backend == "auto":
         S, D = len(_nodes(sizes)), len(sizes)
         step = B * S * S * (D + 1)
-        if T >= _CHUNKED_MIN_STEPS and step * T <= _DENSE_MAX_ELEMENTS:
+        if T >= _CHUNKED_MIN_STEPS and step * T <= _CHUNKED_MAX_ELEMENTS:
             backend = "chunked"
         elif step <= _DENSE_MAX_STEP_ELEMENTS and step * T <= _DENSE_MAX_ELEMENTS:
             backend = "dense"
