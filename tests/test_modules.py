@@ -99,3 +99,22 @@ def test_hand_written_options_are_first_class():
     out = DDOLoss(options)(data)
     out["loss_ddo"].backward()
     assert options.module.lin.weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("cells", [[2], [8, 3], [4, 4, 4]])
+@pytest.mark.parametrize("batch", [(), (5,), (3, 7)])
+def test_ensemble_products_equal_torchrl_vmapped_ensemble(cells, batch):
+    """The stacked-parameter products give TorchRL's vmapped MultiAgentMLP outputs and gradients."""
+    from torchrl_options.modules.options import _ensemble, _ensemble_forward
+
+    torch.manual_seed(0)
+    net = _ensemble(4, 6, 3, cells, "tanh")
+    x = torch.randn(*batch, 4)
+    fast = _ensemble_forward(net, x)
+    ref = net(x.unsqueeze(-2).expand(*batch, 3, 4))
+    assert fast.shape == ref.shape == (*batch, 3, 6)
+    torch.testing.assert_close(fast, ref)
+    g_fast = torch.autograd.grad(fast.square().sum(), list(net.parameters()))
+    g_ref = torch.autograd.grad(ref.square().sum(), list(net.parameters()))
+    for a, b in zip(g_fast, g_ref):
+        torch.testing.assert_close(a, b)
