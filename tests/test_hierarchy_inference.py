@@ -321,3 +321,19 @@ def test_chunked_stays_finite_and_normalised_on_100000_steps_in_float32():
     short = hierarchical_forward_backward(action[:, :2000], *[[x[:, :2000] for x in y] for y in (log_pi, log_term,
                                           log_cont)], log_eta[:, :2000], backend="structured").log_likelihood  # fmt: skip
     assert abs(out.log_likelihood.item() / T - short.item() / 2000) < 0.05
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_planted_hierarchy_posterior_recovers_its_own_labels(seed):
+    """With the planted hierarchy's own probabilities, the exact posterior over call stacks labels both levels
+    (the Bayes-optimal labelling: not 1 at level 2, where patrols share walks)."""
+    from torchrl_options.testing import label_accuracy, planted_two_level_demonstrations
+    from torchrl_options.testing import planted_two_level_log_probabilities
+
+    data = planted_two_level_demonstrations(32, 60, seed=seed)
+    p = planted_two_level_log_probabilities(data)
+    post = hierarchical_forward_backward(**p, marginals=True)
+    assert label_accuracy(post.most_likely(1), data["true_option_1"]) > 0.99
+    assert label_accuracy(post.most_likely(2), data["true_option_2"]) > 0.92
+    chunked = hierarchical_forward_backward(**p, backend="chunked").log_likelihood
+    torch.testing.assert_close(chunked, post.log_likelihood)
