@@ -110,3 +110,22 @@ def test_callback_stops_training_and_checkpoints_do_not_alias(tmp_path):
     # training after a load appends to the agent's own log, not to the checkpoint's lists
     assert len(resumed.log.episode_end_frames) > before
     assert len(state["log"]["episode_end_frames"]) == before
+
+
+@pytest.mark.parametrize("mode", ["actions", "both"])
+def test_max_decisions_limits_episodes_in_decisions(mode):
+    cfg = config(mode, total_frames=512, learning_starts=8, batch_size=8, max_decisions=3)
+    options = dict(options=go_right_options(LENGTH), num_options=2) if mode == "both" else {}
+    agent = OptionsDQN(corridor, cfg, **options)
+    assert "decision_count" in agent.env.observation_spec.keys()
+    log = agent.train()
+    assert agent.frames == 512 and agent.gradient_steps > 0
+    lengths = set(log.episode_lengths)
+    if mode == "actions":
+        assert lengths == {3}  # 3 decisions = 3 primitive steps (the end of the corridor is 19 steps away)
+    else:
+        assert max(lengths) > 3 and max(lengths) <= MAX_STEPS  # an option of up to 19 steps counts as one decision
+    returns = agent.evaluate(4, 2 * MAX_STEPS)
+    assert len(returns) == 4
+    with pytest.raises(ValueError, match="max_decisions"):
+        OptionsDQN(corridor, config(mode, max_decisions=0), **options)

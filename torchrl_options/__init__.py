@@ -37,7 +37,7 @@ from torchrl_options.inference import (
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
 from torchrl_options.objectives import DDOLoss, option_log_probs
 from torchrl_options.segmentation import boundary_metrics, segment, Segmentation
-from torchrl_options.transforms import OptionExecutor
+from torchrl_options.transforms import DecisionCounter, OptionExecutor
 
 __version__ = "0.1.0"
 
@@ -45,6 +45,7 @@ __all__ = [
     "as_trajectory_batch",
     "boundary_metrics",
     "DDOLoss",
+    "DecisionCounter",
     "discover_hierarchy",
     "discover_options",
     "DiscoveryResult",

@@ -36,6 +36,7 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_options.data.smdp import SMDPTransitions
+from torchrl_options.transforms.decision_counter import DecisionCounter
 from torchrl_options.transforms.option_executor import OptionExecutor
 
 logger = logging.getLogger(__name__)
@@ -69,6 +70,11 @@ class OptionsDQNConfig:
         loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"``.
         max_grad_norm: gradient clipping (``None`` to disable).
         greedy_options: options act greedily instead of sampling their action.
+        max_decisions: if set, episodes are limited in decisions rather than primitive steps: a
+            :class:`~torchrl_options.transforms.DecisionCounter` after the executor truncates an episode once its
+            ``max_decisions``-th decision (a primitive action, or an option run to termination) is over. The
+            env's own step limit stays a hard cap on primitive steps: set it well above ``max_decisions``.
+            ``None`` (default): no decision limit.
         observation_key: the input of the default Q-network.
         seed: seeds torch and the envs.
         device: device of the networks and the replay buffer (the envs stay on their own device).
@@ -96,6 +102,7 @@ class OptionsDQNConfig:
     loss_function: str = "l2"
     max_grad_norm: float | None = 10.0
     greedy_options: bool = False
+    max_decisions: int | None = None
     observation_key: NestedKey = "observation"
     seed: int = 0
     device: str = "cpu"
@@ -172,6 +179,11 @@ class OptionsDQN:
             raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
         if config.mode != "actions" and (options is None or num_options is None):
             raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+        max_decisions = config.max_decisions
+        if max_decisions is not None and (
+            isinstance(max_decisions, bool) or not isinstance(max_decisions, int) or max_decisions < 1
+        ):
+            raise ValueError(f"max_decisions must be None or an int >= 1, got {max_decisions!r}.")
         torch.manual_seed(config.seed)
         self.env_factory = env_factory
         self.options = options
@@ -216,7 +228,8 @@ class OptionsDQN:
 
     # ------------------------------------------------------------------ env
     def make_env(self) -> EnvBase:
-        """The training env: batched envs, then the executor (outside the batch), ``RewardSum``, ``StepCounter``."""
+        """The training env: batched envs, then the executor (outside the batch), a ``DecisionCounter`` (with
+        ``config.max_decisions``), ``RewardSum``, ``StepCounter``."""
         config = self.config
         if config.num_envs == 1:
             env = self.env_factory()
@@ -234,6 +247,9 @@ class OptionsDQN:
                     level=1 + _count_executors(env),
                 )
             )
+        if config.max_decisions is not None:
+            # counts the decisions of the top executor (the policy's), or every step without an executor
+            env = env.append_transform(DecisionCounter(config.max_decisions, level=_count_executors(env) or None))
         if "episode_reward" not in env.observation_spec.keys():
             env = env.append_transform(RewardSum())
         if "step_count" not in env.observation_spec.keys():

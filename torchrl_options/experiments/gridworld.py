@@ -211,6 +211,14 @@ def discover_hierarchy_cached(
 def _dqn_config(cfg: Mapping[str, Any], mode: str, seed: int) -> OptionsDQNConfig:
     dqn = dict(cfg["dqn"])
     dqn["hidden_sizes"] = tuple(dqn.get("hidden_sizes", (2,)))
+    # dqn.max_decisions limits episodes in decisions (an option run to termination is one); env.max_steps then
+    # only caps primitive steps, and a cap at or below the decision limit would cut option episodes short
+    max_decisions, max_steps = dqn.get("max_decisions"), dict(cfg["env"]).get("max_steps")
+    if max_decisions is not None and mode != "actions" and max_steps is not None and max_steps <= max_decisions:
+        logger.warning(
+            "dqn.max_decisions=%s with env.max_steps=%s: the step cap ends episodes before options can use the "
+            "decision limit; raise env.max_steps (e.g. 10x).", max_decisions, max_steps,
+        )  # fmt: skip
     # one natively batched env: OptionsDQN's num_envs=1 calls the factory once and does not wrap it
     return OptionsDQNConfig(mode=mode, num_envs=1, seed=seed, **dqn)
 
@@ -361,7 +369,8 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     """Runs one (setting, condition, seed) cell and returns its per-episode returns (resumable).
 
     ``cfg`` keys: ``out_dir``, ``env`` (GridWorldEnv arguments), ``num_envs``, ``demos`` (``num``, ``length``,
-    ``env`` overrides), ``discovery`` (DDO settings), ``dqn`` (:class:`OptionsDQNConfig` fields), ``episodes``,
+    ``env`` overrides), ``discovery`` (DDO settings), ``dqn`` (:class:`OptionsDQNConfig` fields; ``max_decisions``
+    limits episodes in decisions, with ``env.max_steps`` as a larger cap on primitive steps), ``episodes``,
     ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
     and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
