@@ -5,6 +5,7 @@ import pytest
 from torchrl_options.experiments import (
     bootstrap_ci,
     episodes_to_reach,
+    merge_results,
     plot_curves,
     ResultsLog,
     summarize,
@@ -27,6 +28,36 @@ def test_results_log_is_resumable(tmp_path):
     ]
     with pytest.raises(ValueError, match="frames"):
         again.append_cell("s", "H1s", 0, [1.0, 2.0], frames=[1])
+
+
+def test_merge_results_joins_runs_split_over_seeds(tmp_path):
+    a, b = ResultsLog(tmp_path / "a.csv"), ResultsLog(tmp_path / "b.csv")
+    a.append_cell("s", "A", 0, [0.0, 1.0], frames=[10, 20])
+    a.append_cell("s", "H1u", 0, [1.0, 1.0], frames=[10, 20])
+    b.append_cell("s", "A", 1, [0.5, 0.5, 0.5])  # no frames column values
+    b.append_cell("s", "A", 0, [0.0, 1.0], frames=[10, 20])  # the same cell again, identical: kept once
+    dest = tmp_path / "out" / "results.csv"
+    added = merge_results(dest, [a.path, b.path])
+    assert added == [("s", "A", 0), ("s", "H1u", 0), ("s", "A", 1)]
+    merged = ResultsLog(dest)
+    assert merged.returns("s", "A") == {0: [0.0, 1.0], 1: [0.5, 0.5, 0.5]}
+    assert [r["frames"] for r in merged.rows() if r["seed"] == 0 and r["condition"] == "A"] == [10, 20]
+    # the merged summary is the summary of all the rows together
+    rows = a.rows() + [r for r in b.rows() if r["seed"] == 1]
+    assert summarize(merged, final_window=1, smooth_window=1) == summarize(rows, final_window=1, smooth_window=1)
+    # merging again adds nothing; a source that disagrees on a cell is refused, and nothing is written
+    assert merge_results(dest, [a.path, b.path]) == []
+    c = ResultsLog(tmp_path / "c.csv")
+    c.append_cell("s", "H1s", 3, [1.0])
+    c.append_cell("s", "A", 1, [0.5, 0.5, 0.7])
+    before = open(dest).read()
+    with pytest.raises(ValueError, match=r"condition='A', seed=1\) differs"):
+        merge_results(dest, [c.path])
+    assert open(dest).read() == before
+    with pytest.raises(FileNotFoundError, match="sources"):
+        merge_results(dest, [tmp_path / "missing.csv"])
+    with pytest.raises(ValueError, match="non-empty"):
+        merge_results(dest, [])
 
 
 def test_bootstrap_ci_covers_the_mean_and_shrinks_with_data():

@@ -100,3 +100,25 @@ def test_four_rooms_recipe_with_two_level_hierarchy(tmp_path):
     assert "| supervised | H2u |" in summary
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "H2u")])
     assert (out / "cells" / "supervised-seed0" / "hierarchy-K4x2-uniform.pt").exists()
+
+
+def test_merge_results_recipe(tmp_path):
+    """Two runs over different seeds merged into one results.csv, summary.md (all seeds) and curves.png."""
+    from torchrl_options.experiments import ResultsLog
+
+    for name, seeds in (("run0", (0, 1)), ("run1", (2,))):
+        log = ResultsLog(tmp_path / name / "results.csv")
+        for seed in seeds:
+            log.append_cell("supervised", "A", seed, [0.0] * 5 + [1.0] * 5)
+            log.append_cell("supervised", "H1u", seed, [1.0] * 10)
+    out = tmp_path / "merged"
+    summary = _load("merge_results").main(
+        [str(tmp_path / "run0"), str(tmp_path / "run1" / "results.csv"), "--out", str(out), "--title", "Merged",
+         "--final-window", "2", "--smooth-window", "2"]
+    )  # fmt: skip
+    merged = ResultsLog(out / "results.csv")
+    assert merged.done_cells() == {("supervised", c, s) for c in ("A", "H1u") for s in (0, 1, 2)}
+    assert merged.returns("supervised", "A")[2] == [0.0] * 5 + [1.0] * 5
+    assert (out / "summary.md").read_text() == summary
+    assert "| supervised | H1u | 3 | 10 | 1.000 [1.000, 1.000] | 2 [2, 2] | 3/3 |" in summary
+    assert (out / "curves.png").read_bytes()[:8] == PNG

@@ -50,6 +50,7 @@ __all__ = [
     "run_gridworld_recipe",
     "run_gridworld_script",
     "write_option_pictures",
+    "write_summary",
 ]
 
 logger = logging.getLogger(__name__)
@@ -443,8 +444,7 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
     """
     import functools
 
-    from torchrl_options.experiments.plotting import plot_curves
-    from torchrl_options.experiments.results import ResultsLog, summarize, summary_markdown
+    from torchrl_options.experiments.results import ResultsLog
     from torchrl_options.experiments.sweep import run_sweep
 
     cfg = dict(cfg)
@@ -475,7 +475,38 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
         logger.warning("stopped after %d cells (stop_after_cells); run again to resume.", int(stop))
         return None
 
-    summary_cfg = dict(cfg.get("summary") or {})
+    text = write_summary(log, out, title, cfg.get("summary"))
+    write_option_pictures(cfg, min(seeds))
+    return text
+
+
+def write_summary(
+    log: ResultsLog | str | os.PathLike, out_dir: str | os.PathLike, title: str, summary_cfg: Mapping[str, Any] | None = None
+) -> str:
+    """Writes ``summary.md`` and ``curves.png`` for a ``results.csv`` to ``out_dir``; returns the summary.
+
+    ``summary_cfg`` holds the recipes' ``summary`` keys: ``final_window`` (100), ``smooth_window`` (100),
+    ``curve_window`` (50), and ``reach_return`` / ``reach_window`` for an extra table of the episodes to a return.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from torchrl_options.experiments import ResultsLog
+        >>> d = tempfile.mkdtemp()
+        >>> log = ResultsLog(os.path.join(d, "results.csv"))
+        >>> for seed in (0, 1):
+        ...     log.append_cell("supervised", "A", seed, returns=[0.0, 1.0, 1.0, 1.0])
+        >>> print(write_summary(log, d, "Demo", {"final_window": 2, "smooth_window": 2}).splitlines()[4])
+        | supervised | A | 2 | 4 | 1.000 [1.000, 1.000] | 2 [2, 2] | 2/2 |
+        >>> sorted(os.listdir(d))
+        ['curves.png', 'results.csv', 'summary.md']
+    """
+    from torchrl_options.experiments.plotting import plot_curves
+    from torchrl_options.experiments.results import ResultsLog, summarize, summary_markdown
+
+    log = log if isinstance(log, ResultsLog) else ResultsLog(log)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary_cfg = dict(summary_cfg or {})
     final_window = int(summary_cfg.get("final_window", 100))
     summaries = summarize(log, final_window=final_window, smooth_window=int(summary_cfg.get("smooth_window", 100)))
     text = f"# {title}\n\n" + summary_markdown(summaries, final_window=final_window)
@@ -483,7 +514,6 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
         text += "\n" + reach_table(log, float(summary_cfg["reach_return"]), int(summary_cfg.get("reach_window", 10)))
     (out / "summary.md").write_text(text)
     plot_curves(log, out / "curves.png", smooth_window=int(summary_cfg.get("curve_window", 50)), title=title)
-    write_option_pictures(cfg, min(seeds))
     return text
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "merge_results",
     "ResultsLog",
     "bootstrap_ci",
     "episodes_to_reach",
@@ -111,6 +112,69 @@ class ResultsLog:
             if key not in seen:
                 seen.append(key)
         return seen
+
+
+def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence[str | os.PathLike]) -> list[tuple[str, str, int]]:
+    """Merges the cells of other ``results.csv`` files into ``destination`` (runs split over seeds or machines).
+
+    Each (setting, condition, seed) cell of a source is appended whole unless the destination already has it;
+    a cell found twice with the same episodes is kept once, a cell found twice with different episodes is an
+    error (two runs of the same cell that disagree: nothing is written). Sources are read in order.
+
+    Args:
+        destination (str, PathLike or ResultsLog): the merged ``results.csv`` (created if missing).
+        sources (sequence of str or PathLike): the ``results.csv`` files to merge in.
+
+    Returns:
+        The cells added to ``destination``, in the order they were appended.
+
+    Raises:
+        ValueError: an empty ``sources``, or a cell whose episodes differ between two files (named).
+        FileNotFoundError: a missing source file (named).
+
+    Examples:
+        >>> import os, tempfile
+        >>> d = tempfile.mkdtemp()
+        >>> ResultsLog(os.path.join(d, "a.csv")).append_cell("supervised", "A", 0, returns=[0.0, 1.0])
+        >>> ResultsLog(os.path.join(d, "b.csv")).append_cell("supervised", "A", 1, returns=[1.0, 1.0])
+        >>> merge_results(os.path.join(d, "all.csv"), [os.path.join(d, "a.csv"), os.path.join(d, "b.csv")])
+        [('supervised', 'A', 0), ('supervised', 'A', 1)]
+        >>> sorted(ResultsLog(os.path.join(d, "all.csv")).returns("supervised", "A"))
+        [0, 1]
+    """
+    if isinstance(sources, (str, os.PathLike)) or not len(sources):
+        raise ValueError(f"sources must be a non-empty list of results.csv paths, got {sources!r}.")
+    dest = destination if isinstance(destination, ResultsLog) else ResultsLog(destination)
+    cells: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
+    for row in dest.rows():
+        key = (row["setting"], row["condition"], row["seed"])
+        cells.setdefault(key, ([], [], dest.path))
+        cells[key][0].append(row["return"])
+        cells[key][1].append(row["frames"])
+    new: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
+    for source in sources:
+        source = os.fspath(source)
+        if not os.path.isfile(source):
+            raise FileNotFoundError(f"sources: no results file at {source!r}.")
+        found: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
+        for row in sorted(ResultsLog(source).rows(), key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+            key = (row["setting"], row["condition"], row["seed"])
+            found.setdefault(key, ([], [], source))
+            found[key][0].append(row["return"])
+            found[key][1].append(row["frames"])
+        for key, (returns, frames, path) in found.items():
+            if key in cells:
+                if cells[key][0] != returns:
+                    raise ValueError(
+                        f"cell (setting={key[0]!r}, condition={key[1]!r}, seed={key[2]}) differs between "
+                        f"{cells[key][2]!r} and {path!r}; remove one of them before merging."
+                    )
+                continue
+            cells[key] = new[key] = (returns, frames, path)
+    for key, (returns, frames, _) in new.items():
+        dest.append_cell(*key, returns=returns, frames=None if any(f is None for f in frames) else frames)
+    logger.info("merged %d cells into %s", len(new), dest.path)
+    return list(new)
 
 
 def bootstrap_ci(
