@@ -496,7 +496,7 @@ def write_summary(
         >>> for seed in (0, 1):
         ...     log.append_cell("supervised", "A", seed, returns=[0.0, 1.0, 1.0, 1.0])
         >>> print(write_summary(log, d, "Demo", {"final_window": 2, "smooth_window": 2}).splitlines()[4])
-        | supervised | A | 2 | 4 | 1.000 [1.000, 1.000] | 2 [2, 2] | 2/2 |
+        | supervised | A | 2 | 4 | 1.000 [1.000, 1.000] | 3 [3, 3] | 2/2 |
         >>> sorted(os.listdir(d))
         ['curves.png', 'results.csv', 'summary.md']
     """
