@@ -30,6 +30,18 @@ def test_results_log_is_resumable(tmp_path):
         again.append_cell("s", "H1s", 0, [1.0, 2.0], frames=[1])
 
 
+def test_append_cells_writes_all_or_nothing(tmp_path):
+    log = ResultsLog(tmp_path / "results.csv")
+    log.append_cells([("s", "A", 0, [0.0, 1.0], [1, 2]), ("s", "A", 1, [2.0], None)])
+    assert log.returns("s", "A") == {0: [0.0, 1.0], 1: [2.0]}
+    before = open(log.path).read()
+    with pytest.raises(ValueError, match="already"):  # the second cell repeats the first: nothing is written
+        log.append_cells([("s", "H1u", 0, [1.0], None), ("s", "H1u", 0, [1.0], None)])
+    with pytest.raises(ValueError, match="frames"):
+        log.append_cells([("s", "H1u", 0, [1.0], None), ("s", "H1s", 0, [1.0], [1, 2])])
+    assert open(log.path).read() == before
+
+
 def test_merge_results_joins_runs_split_over_seeds(tmp_path):
     a, b = ResultsLog(tmp_path / "a.csv"), ResultsLog(tmp_path / "b.csv")
     a.append_cell("s", "A", 0, [0.0, 1.0], frames=[10, 20])

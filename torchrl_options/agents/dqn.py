@@ -179,11 +179,6 @@ class OptionsDQN:
             raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
         if config.mode != "actions" and (options is None or num_options is None):
             raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
-        max_decisions = config.max_decisions
-        if max_decisions is not None and (
-            isinstance(max_decisions, bool) or not isinstance(max_decisions, int) or max_decisions < 1
-        ):
-            raise ValueError(f"max_decisions must be None or an int >= 1, got {max_decisions!r}.")
         torch.manual_seed(config.seed)
         self.env_factory = env_factory
         self.options = options

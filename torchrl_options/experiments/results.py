@@ -80,13 +80,27 @@ class ResultsLog:
         frames: Sequence[int] | None = None,
     ) -> None:
         """Appends a finished cell's episodes at once (a half-written cell is never left behind)."""
-        if self.is_done(setting, condition, seed):
-            raise ValueError(f"cell ({setting!r}, {condition!r}, seed={seed}) is already in {self.path}.")
-        if frames is not None and len(frames) != len(returns):
-            raise ValueError(f"frames has {len(frames)} entries but returns has {len(returns)}.")
+        self.append_cells([(setting, condition, seed, returns, frames)])
+
+    def append_cells(
+        self, cells: Iterable[tuple[str, str, int, Sequence[float], Sequence[int] | None]]
+    ) -> None:
+        """Appends several finished cells, ``(setting, condition, seed, returns, frames)`` each, in one write.
+
+        Either all of them are written or none (the file is replaced atomically).
+        """
+        done = self.done_cells()
         lines = []
-        for i, r in enumerate(returns):
-            lines.append([setting, condition, int(seed), i, float(r), "" if frames is None else int(frames[i])])
+        for setting, condition, seed, returns, frames in cells:
+            if (setting, condition, int(seed)) in done:
+                raise ValueError(f"cell ({setting!r}, {condition!r}, seed={seed}) is already in {self.path}.")
+            if frames is not None and len(frames) != len(returns):
+                raise ValueError(f"frames has {len(frames)} entries but returns has {len(returns)}.")
+            done.add((setting, condition, int(seed)))
+            for i, r in enumerate(returns):
+                lines.append([setting, condition, int(seed), i, float(r), "" if frames is None else int(frames[i])])
+        if not lines:
+            return
         tmp = self.path + ".tmp"
         with open(self.path, newline="") as f:
             existing = f.read()
@@ -145,36 +159,36 @@ def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence
     if isinstance(sources, (str, os.PathLike)) or not len(sources):
         raise ValueError(f"sources must be a non-empty list of results.csv paths, got {sources!r}.")
     dest = destination if isinstance(destination, ResultsLog) else ResultsLog(destination)
-    cells: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
-    for row in dest.rows():
-        key = (row["setting"], row["condition"], row["seed"])
-        cells.setdefault(key, ([], [], dest.path))
-        cells[key][0].append(row["return"])
-        cells[key][1].append(row["frames"])
+    cells = {key: (*cell, dest.path) for key, cell in _cells(dest).items()}
     new: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
     for source in sources:
         source = os.fspath(source)
         if not os.path.isfile(source):
             raise FileNotFoundError(f"sources: no results file at {source!r}.")
-        found: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
-        for row in sorted(ResultsLog(source).rows(), key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
-            key = (row["setting"], row["condition"], row["seed"])
-            found.setdefault(key, ([], [], source))
-            found[key][0].append(row["return"])
-            found[key][1].append(row["frames"])
-        for key, (returns, frames, path) in found.items():
+        for key, (returns, frames) in _cells(ResultsLog(source)).items():
             if key in cells:
                 if cells[key][0] != returns:
                     raise ValueError(
                         f"cell (setting={key[0]!r}, condition={key[1]!r}, seed={key[2]}) differs between "
-                        f"{cells[key][2]!r} and {path!r}; remove one of them before merging."
+                        f"{cells[key][2]!r} and {source!r}; remove one of them before merging."
                     )
                 continue
-            cells[key] = new[key] = (returns, frames, path)
-    for key, (returns, frames, _) in new.items():
-        dest.append_cell(*key, returns=returns, frames=None if any(f is None for f in frames) else frames)
+            cells[key] = new[key] = (returns, frames, source)
+    dest.append_cells(
+        (*key, returns, None if any(f is None for f in frames) else frames) for key, (returns, frames, _) in new.items()
+    )
     logger.info("merged %d cells into %s", len(new), dest.path)
     return list(new)
+
+
+def _cells(log: ResultsLog) -> dict[tuple[str, str, int], tuple[list[float], list[int | None]]]:
+    """``{(setting, condition, seed): (returns, frames)}``, episodes in order."""
+    out: dict[tuple[str, str, int], tuple[list[float], list[int | None]]] = {}
+    for row in sorted(log.rows(), key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+        returns, frames = out.setdefault((row["setting"], row["condition"], row["seed"]), ([], []))
+        returns.append(row["return"])
+        frames.append(row["frames"])
+    return out
 
 
 def bootstrap_ci(

@@ -51,8 +51,13 @@ def _ensemble_forward(net: MultiAgentMLP, x: torch.Tensor) -> torch.Tensor:
     vmap, which dominates the cost of the small networks of options inside an env step. Falls back to ``net`` for
     layers other than ``Linear`` and parameter-free activations.
     """
-    layers = list(net._empty_net.named_children())
-    if not all(isinstance(m, nn.Linear) or not any(True for _ in m.parameters()) for _, m in layers):
+    plan = net.__dict__.get("_ensemble_plan")  # the layers, inspected once per network (not on every step)
+    if plan is None:
+        layers = list(net._empty_net.named_children())
+        batched = all(isinstance(m, nn.Linear) or not any(True for _ in m.parameters()) for _, m in layers)
+        plan = net.__dict__["_ensemble_plan"] = (layers, batched)
+    layers, batched = plan
+    if not batched:
         K = net.n_agents
         return net(x.unsqueeze(-2).expand(*x.shape[:-1], K, x.shape[-1]))
     params = net.params

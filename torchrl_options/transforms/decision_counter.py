@@ -16,16 +16,9 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import EnvBase, Transform
 
+from torchrl_options.transforms.option_executor import _level_key, _reset_key, _sibling_key
+
 __all__ = ["DecisionCounter"]
-
-
-def _level_key(name: str, level: int) -> str:
-    return name if level == 1 else f"{name}_{level}"
-
-
-def _sibling(key: NestedKey, name: str) -> NestedKey:
-    """``name`` next to ``key``: ``"truncated"`` for ``"done"``, ``(..., "truncated")`` for ``(..., "done")``."""
-    return name if isinstance(key, str) else (*key[:-1], name)
 
 
 class DecisionCounter(Transform):
@@ -133,9 +126,9 @@ class DecisionCounter(Transform):
         self.count_key = unravel_key(count_key)
         self.done_key = unravel_key(done_key)
         if truncated_key is None:
-            truncated_key = _sibling(self.done_key, "truncated")
+            truncated_key = _sibling_key(self.done_key, "truncated")
         self.truncated_key = unravel_key(truncated_key)
-        self.reset_key = unravel_key(_sibling(self.done_key, "_reset"))
+        self.reset_key = unravel_key(_reset_key(self.done_key))
         super().__init__(in_keys=[], out_keys=[self.count_key])
 
     # ------------------------------------------------------------------ specs

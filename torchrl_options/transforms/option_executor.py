@@ -604,8 +604,13 @@ def _cache_entries(tensors: list) -> list[tuple] | None:
     return entries
 
 
+def _sibling_key(key: NestedKey, name: str) -> NestedKey:
+    """``name`` next to ``key``: ``"_reset"`` for ``"done"``, ``(..., "_reset")`` for ``(..., "done")``."""
+    return name if isinstance(key, str) else (*key[:-1], name)
+
+
 def _reset_key(done_key: NestedKey) -> NestedKey:
-    return "_reset" if isinstance(done_key, str) else (*done_key[:-1], "_reset")
+    return _sibling_key(done_key, "_reset")
 
 
 class _SeedExecutors:
