@@ -213,11 +213,20 @@ _INTERPRET_SCRIPT = textwrap.dedent(
         xs, mask, terminal = make_case(B, T, K, dtype, ninf=ninf, seed=B * T * K)
         assert resolve_backend("triton", xs[0]) == "triton"
         ref = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
-        leaves = [x.clone().requires_grad_() for x in xs]
-        out = forward_backward(*leaves, mask=mask, terminal=terminal, backend="triton")
+        weights = torch.rand(B, dtype=dtype) + 0.5
+        grads = {{}}
+        for backend in ("reference", "triton"):
+            leaves = [x.clone().requires_grad_() for x in xs]
+            out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
+            (out.log_likelihood * weights).sum().backward()
+            grads[backend] = [x.grad for x in leaves]
         assert_close_outputs(ref, out, dtype)
-        out.log_likelihood.sum().backward()
-        torch.testing.assert_close(leaves[0].grad, out.u)
+        # the fused gradient kernel: the Expectation-Gradient of the kernel's own marginals, and the reference's
+        torch.testing.assert_close(grads["triton"][0], weights[:, None, None] * out.u, rtol=0, atol=0)
+        torch.testing.assert_close(grads["triton"][2], weights[:, None, None] * out.w, rtol=0, atol=0)
+        torch.testing.assert_close(grads["triton"][3], weights[:, None, None] * out.v, rtol=0, atol=0)
+        for a, b in zip(grads["reference"], grads["triton"]):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=2e-6)
     xs, mask, terminal = make_case(3, 6, 3, torch.float32, pad=False, seed=1)
     log_pi = xs[0].clone(); log_pi[1, 4] = float("-inf")
     try:
@@ -252,6 +261,25 @@ def test_cuda_backends_match_reference(backend, dtype):
     out = forward_backward(*xs_c, mask=mask.cuda(), terminal=terminal.cuda(), backend=backend)
     out_cpu = type(out)(*(x.cpu() for x in (out.log_likelihood, out.u, out.v, out.w)))
     assert_close_outputs(ref, out_cpu, dtype)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not (HAS_CUDA and HAS_TRITON), reason="needs CUDA and triton")
+@pytest.mark.parametrize("B,T,K", [(33, 300, 16), (70, 129, 5), (3, 1, 4)])
+def test_triton_cuda_gradients_match_reference(B, T, K):
+    """Identical gradients: the fused gradient kernel against the reference path's autograd, weighted rows."""
+    xs, mask, terminal = make_case(B, T, K, torch.float32, ninf=0.2, sharp=3.0, seed=B + T + K, device="cuda")
+    weights = torch.rand(B, device="cuda") + 0.5
+    grads = {}
+    for backend in ("reference", "triton"):
+        leaves = [x.clone().requires_grad_() for x in xs]
+        out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
+        (out.log_likelihood * weights).sum().backward()
+        grads[backend] = [x.grad for x in leaves]
+    torch.testing.assert_close(grads["triton"][0], weights[:, None, None] * out.u, rtol=0, atol=0)
+    torch.testing.assert_close(grads["triton"][3], weights[:, None, None] * out.v, rtol=0, atol=0)
+    for a, b in zip(grads["reference"], grads["triton"]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=2e-6)
 
 
 @pytest.mark.gpu

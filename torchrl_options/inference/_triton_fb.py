@@ -17,7 +17,7 @@ import os
 import torch
 from torch import Tensor
 
-__all__ = ["triton_forward_backward", "triton_importable", "triton_interpret"]
+__all__ = ["triton_expectation_gradient", "triton_forward_backward", "triton_importable", "triton_interpret"]
 
 
 def triton_interpret() -> bool:
@@ -35,16 +35,16 @@ def triton_importable() -> bool:
     return True
 
 
-_KERNEL = None
-
-
 def _kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        from torchrl_options.inference._triton_kernels import _fb_kernel
+    from torchrl_options.inference._triton_kernels import _fb_kernel
 
-        _KERNEL = _fb_kernel
-    return _KERNEL
+    return _fb_kernel
+
+
+def _sm_count(device: torch.device) -> int:
+    if device.type != "cuda":
+        return 1  # the interpreter: any launch shape is as good
+    return torch.cuda.get_device_properties(device).multi_processor_count
 
 
 def _next_pow2(n: int) -> int:
@@ -52,10 +52,21 @@ def _next_pow2(n: int) -> int:
 
 
 def triton_forward_backward(
-    log_pi: Tensor, log_term: Tensor, log_cont: Tensor, log_eta: Tensor, mask: Tensor, terminal: Tensor
+    log_pi: Tensor,
+    log_term: Tensor,
+    log_cont: Tensor,
+    log_eta: Tensor,
+    mask: Tensor,
+    terminal: Tensor,
+    *,
+    block_b: int | None = None,
+    num_warps: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The fused kernel on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w)``;
-    a row of zero likelihood comes back with a non-finite log-likelihood (the caller raises)."""
+    a row of zero likelihood comes back with a non-finite log-likelihood (the caller raises).
+
+    ``block_b`` (rows per program, a power of two) and ``num_warps`` override the launch shape chosen from K and B
+    (``benchmarks/bench_triton_fb.py`` compares them)."""
     B, T, K = log_pi.shape
     log_pi, log_term, log_cont, log_eta = (x.contiguous() for x in (log_pi, log_term, log_cont, log_eta))
     last = mask.sum(1) - 1
@@ -69,10 +80,41 @@ def triton_forward_backward(
     w = torch.empty_like(log_pi)
     ll = torch.empty(B, dtype=log_pi.dtype, device=log_pi.device)
     KP = max(2, _next_pow2(K))
-    BLOCK_B = max(1, min(16, 128 // KP, _next_pow2(B)))
+    if block_b is None:
+        # About 128 (row, option) cells per warp; fewer rows per program (down to one warp's worth of cells) when
+        # that leaves the GPU with under two programs per multiprocessor. Measured on an H100 (bench_triton_fb.py):
+        # (4096, 1000, 16) best at 8 rows x 1 warp, (64, 1000, 8) at 2-4 rows x 1 warp.
+        block_b = max(1, min(32, 128 // KP, _next_pow2(B)))
+        floor = max(1, 32 // KP)
+        while block_b > floor and -(-B // block_b) < 2 * _sm_count(log_pi.device):
+            block_b //= 2
+    BLOCK_B = block_b
+    if BLOCK_B < 1 or BLOCK_B & (BLOCK_B - 1):
+        raise ValueError(f"block_b must be a power of two, got {BLOCK_B}.")
+    if num_warps is None:
+        num_warps = max(1, min(8, BLOCK_B * KP // 128))
     grid = (-(-B // BLOCK_B),)
     _kernel()[grid](
         log_pi, log_term, log_cont, log_eta, end, last, alpha, u, v, w, ll, B, T, K,
-        BLOCK_B=BLOCK_B, KP=KP, num_warps=1 if BLOCK_B * KP <= 64 else 2,
+        BLOCK_B=BLOCK_B, KP=KP, num_warps=num_warps,
     )
     return ll, u, v, w
+
+
+def triton_expectation_gradient(
+    grad_ll: Tensor, u: Tensor, v: Tensor, w: Tensor, term_weight: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The gradients of ``sum(grad_ll * log P)`` with respect to ``(log_pi, log_term, log_cont, log_eta)`` in one
+    pass over the marginals: ``g u``, ``g (u - w)`` where ``term_weight``, ``g w`` and ``g v``, with ``g`` the
+    row's ``grad_ll``. The same values as the PyTorch expression, in 7 tensor passes instead of about 13."""
+    from torchrl_options.inference._triton_kernels import _grad_kernel
+
+    B, T, K = u.shape
+    u, v, w = u.contiguous(), v.contiguous(), w.contiguous()
+    g = grad_ll.to(u.dtype).contiguous()
+    tw = term_weight.contiguous().view(torch.uint8)
+    outs = tuple(torch.empty_like(u) for _ in range(4))
+    N = B * T * K
+    BLOCK = 1024
+    _grad_kernel[(-(-N // BLOCK),)](u, v, w, tw, g, *outs, N, T * K, K, BLOCK=BLOCK, num_warps=4)
+    return outs

@@ -91,3 +91,24 @@ def _fb_kernel(
             tl.store(v_ptr + off, u_t, mask=ok)
         b = nb
         eta_n = eta
+
+
+@triton.jit
+def _grad_kernel(
+    u_ptr, v_ptr, w_ptr, tw_ptr, g_ptr,
+    gpi_ptr, gterm_ptr, gcont_ptr, geta_ptr,
+    N, TK, K,
+    BLOCK: tl.constexpr,
+):
+    # The Expectation-Gradient in one pass: g*u, g*(u - w) where log_term counts, g*w, g*v (g = dL/dlog P per row).
+    offs = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    ok = offs < N
+    u = tl.load(u_ptr + offs, mask=ok, other=0.0)
+    v = tl.load(v_ptr + offs, mask=ok, other=0.0)
+    w = tl.load(w_ptr + offs, mask=ok, other=0.0)
+    g = tl.load(g_ptr + offs // TK, mask=ok, other=0.0)
+    tw = tl.load(tw_ptr + offs // K, mask=ok, other=0)
+    tl.store(gpi_ptr + offs, g * u, mask=ok)
+    tl.store(gterm_ptr + offs, tl.where(tw != 0, u - w, 0.0) * g, mask=ok)
+    tl.store(gcont_ptr + offs, g * w, mask=ok)
+    tl.store(geta_ptr + offs, g * v, mask=ok)

@@ -335,12 +335,17 @@ class _ForwardBackward(torch.autograd.Function):
         ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
         ctx.save_for_backward(u, v, w, _term_weight(mask, terminal))
         ctx.mark_non_differentiable(u, v, w)
+        ctx.fused = backend == "triton"
         return ll, u, v, w
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_ll, grad_u, grad_v, grad_w):
         u, v, w, term_weight = ctx.saved_tensors
+        if ctx.fused:
+            from torchrl_options.inference._triton_fb import triton_expectation_gradient
+
+            return (*triton_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
         g = grad_ll.view(-1, 1, 1)
         grad_term = torch.where(term_weight.unsqueeze(-1), u - w, 0.0)
         return g * u, g * grad_term, g * w, g * v, None, None, None
