@@ -129,3 +129,25 @@ def test_max_decisions_limits_episodes_in_decisions(mode):
     assert len(returns) == 4
     with pytest.raises(ValueError, match="max_decisions"):
         OptionsDQN(corridor, config(mode, max_decisions=0), **options)
+
+
+def test_collector_is_given_the_env_device(monkeypatch):
+    """TorchRL 0.14.1's Collector chooses its env-side CUDA synchronisation from the ``env_device`` argument alone;
+    without it a CUDA policy's actions reach a CPU env unsynchronised (garbage actions, seen on an H100). The agent
+    must therefore always name the env's device."""
+    import torchrl_options.agents.dqn as dqn_mod
+
+    seen = {}
+    real = dqn_mod.Collector
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dqn_mod, "Collector", spy)
+    agent = OptionsDQN(
+        lambda: Corridor(length=4, device="cpu"), OptionsDQNConfig(mode="actions", frames_per_batch=8, learning_starts=8)
+    )
+    agent.train(total_frames=8)
+    assert "env_device" in seen and seen["env_device"] == agent.env.device == torch.device("cpu")
+    assert seen["policy_device"] == agent.device

@@ -274,6 +274,10 @@ class OptionsDQN:
             total_frames=total_frames,
             storing_device=self.device,
             policy_device=self.device,
+            # Named explicitly: TorchRL 0.14.1's Collector picks its env-side CUDA sync from this argument only, so
+            # without it a CUDA policy's actions reach a CPU env through an unsynchronised non-blocking copy
+            # (seen on an H100: garbage actions, ALE's "list index out of range").
+            env_device=self.env.device,
             auto_register_policy_transforms=False,
         )
         collector.set_seed(config.seed + self.frames)
