@@ -39,13 +39,12 @@ def run(cfg: DictConfig) -> list:
     """Runs the sweep described by ``cfg`` (the composed Hydra config), writes its outputs, returns the cells that ran
     (finished cells found in ``results.csv`` are skipped)."""
     config = AtariConfig.from_dict(OmegaConf.to_container(cfg.atari, resolve=True))
-    games = [cfg.game] if cfg.get("game") else list(cfg.games)
     out_dir = os.path.abspath(cfg.out_dir)
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "config.yaml"), "w") as f:
         f.write(OmegaConf.to_yaml(cfg, resolve=True))
     results = ResultsLog(os.path.join(out_dir, "results.csv"))
-    cells = atari_cells(games, int(cfg.seeds))
+    cells = sweep_cells(cfg)
     cell_fn = partial(run_atari_cell, config=config, out_dir=out_dir)
 
     def on_result(cell, result):
@@ -66,6 +65,13 @@ def run(cfg: DictConfig) -> list:
     log.info("%d cells ran, %d were already finished", len(ran), len(cells) - len(ran))
     write_outputs(results, out_dir, cfg, config)
     return ran
+
+
+def sweep_cells(cfg: DictConfig) -> list:
+    """The cells of the sweep: ``game`` (or ``games``) x ``seeds`` (a count, or a list of seeds) x (A, H1)."""
+    games = [cfg.game] if cfg.get("game") else list(cfg.games)
+    seeds = cfg.seeds
+    return atari_cells(games, int(seeds) if isinstance(seeds, (int, str)) else [int(s) for s in seeds])
 
 
 def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: AtariConfig) -> None:

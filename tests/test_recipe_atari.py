@@ -35,7 +35,7 @@ def _rows(path):
 
 
 def test_presets_compose():
-    for preset in ("smoke", "cpu", "cpu-large", "gpu-hour", "paper"):
+    for preset in ("smoke", "cpu", "cpu-large", "cores16", "gpu-hour", "paper"):
         cfg = _config([f"atari_preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
@@ -43,6 +43,11 @@ def test_presets_compose():
     assert (paper.phase1_episodes, paper.phase3_episodes, paper.num_demonstrations) == (1000, 4000, 100)
     assert _config(["atari_preset=paper"]).seeds == 50
     assert _config(["atari_preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
+    # seeds: a count (0 .. n-1) or a list, e.g. to split a sweep over machines and join the results
+    recipe = _recipe()
+    names = [c.name for c in recipe.sweep_cells(_config(["atari_preset=cores16", "seeds=[3,5]", "game=Pooyan"]))]
+    assert names == ["Pooyan-A-seed3", "Pooyan-A-seed5", "Pooyan-H1-seed3", "Pooyan-H1-seed5"]
+    assert len(recipe.sweep_cells(_config(["atari_preset=cores16"]))) == 5 * 3 * 2
 
 
 def test_smoke_end_to_end_and_resume(tmp_path):
