@@ -151,3 +151,23 @@ def test_collector_is_given_the_env_device(monkeypatch):
     agent.train(total_frames=8)
     assert "env_device" in seen and seen["env_device"] == agent.env.device == torch.device("cpu")
     assert seen["policy_device"] == agent.device
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_agent_on_cpu_env_actions_arrive_intact():
+    """A CUDA Q-network driving a CPU env: at every step the env receives exactly the action the policy chose
+    (an unsynchronised device-to-host copy shows up here as a mismatch, or as an out-of-range action)."""
+    agent = OptionsDQN(lambda: Corridor(LENGTH, max_steps=MAX_STEPS, batch_size=[4], device="cpu"),
+                       config("actions", total_frames=3_000, device="cuda"))
+    checked = [0]
+
+    def check(agent, batch):
+        sent = batch["action"].cpu()
+        received = batch["next", "received_action"].cpu()
+        assert ((sent >= 0) & (sent < 2)).all()
+        torch.testing.assert_close(received, sent, rtol=0, atol=0)
+        checked[0] += sent.numel()
+
+    agent.train(callback=check)
+    assert checked[0] >= 3_000
