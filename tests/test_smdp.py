@@ -84,6 +84,26 @@ def test_hand_computed_option_and_episode_end():
     assert out["next", "terminated"].reshape(-1).tolist() == [False, False, True]
 
 
+def test_discount_per_decision_hand_computed():
+    """Every decision one time-step: rewards of a decision summed, k = 1 (the bootstrap uses gamma once)."""
+    decision = [True, False, False, True, True, False, True]
+    done = [False, False, False, False, False, True, False]
+    reward = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    out = smdp_transitions(steps(decision, done, reward), 0.9, discount_per="decision")
+    assert out["steps_to_next_obs"].reshape(-1).tolist() == [1, 1, 1]
+    torch.testing.assert_close(out["next", "reward"].reshape(-1), torch.tensor([6.0, 4.0, 11.0]))
+    assert out["next", "observation"].tolist() == [3.0, 4.0, 6.0]
+    # an option running over a batch boundary: its partial sum is carried, still undiscounted
+    smdp = SMDPTransitions(0.5, discount_per="decision")
+    first = smdp(steps([True, False, False], [False] * 3, [1.0, 1.0, 1.0]))
+    assert first.shape[0] == 0
+    second = smdp(steps([False, True], [False, False], [1.0, 1.0]))
+    assert second["steps_to_next_obs"].reshape(-1).tolist() == [1]
+    torch.testing.assert_close(second["next", "reward"].reshape(-1), torch.tensor([4.0]))
+    with pytest.raises(ValueError, match="discount_per"):
+        SMDPTransitions(0.9, discount_per="episode")
+
+
 def test_truncated_episode_is_not_terminal():
     out = smdp_transitions(steps([True, False], [False, True], terminated=[False, False]), 0.5)
     assert out["next", "done"].item() and not out["next", "terminated"].item() and out["next", "truncated"].item()

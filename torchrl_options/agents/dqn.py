@@ -61,7 +61,10 @@ class OptionsDQNConfig:
         learning_starts: decisions in the buffer before the first gradient step.
         updates_per_batch: gradient steps per collector batch.
         lr: Adam learning rate.
-        gamma: discount per primitive step.
+        gamma: discount per primitive step (or per decision with ``discount_per="decision"``).
+        discount_per: ``"step"`` (default: the SMDP target ``R + gamma^k max Q``, rewards discounted inside an
+            option) or ``"decision"`` (every decision is one time-step: rewards summed, ``R + gamma max Q``);
+            see :mod:`torchrl_options.data.smdp`.
         hidden_sizes: hidden layers of the default MLP Q-network.
         eps_init, eps_end, eps_annealing_frames: linear epsilon-greedy schedule, over frames.
         target_update: ``"hard"`` (copy every ``hard_update_interval`` gradient steps) or ``"soft"``
@@ -91,6 +94,7 @@ class OptionsDQNConfig:
     updates_per_batch: int = 4
     lr: float = 1e-3
     gamma: float = 0.99
+    discount_per: Literal["step", "decision"] = "step"
     hidden_sizes: tuple[int, ...] = (64, 64)
     eps_init: float = 1.0
     eps_end: float = 0.05
@@ -216,7 +220,7 @@ class OptionsDQN:
         self.replay_buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(config.buffer_size, device=self.device), batch_size=config.batch_size
         )
-        self.smdp = SMDPTransitions(config.gamma)
+        self.smdp = SMDPTransitions(config.gamma, discount_per=config.discount_per)
         self.frames = 0
         self.gradient_steps = 0
         self.log = TrainingLog()

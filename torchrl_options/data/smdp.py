@@ -13,6 +13,12 @@ step and ``steps_to_next_obs = k``, so that TorchRL's value estimators (and henc
 ``gamma ** k``: ``y = R_t + gamma^k (1 - terminated) max_a Q(s_{t+k}, a)``. The rewards are discounted
 inside the option (the authors' code summed them undiscounted and bootstrapped with a single ``gamma``).
 A truncated episode keeps ``terminated=False`` and is bootstrapped.
+
+``discount_per="decision"`` instead treats every decision as one time-step of a decision-level MDP: the rewards
+of a decision are summed undiscounted and ``k = 1``, so the bootstrap uses a single ``gamma``. That is the
+consistent choice only when time itself is counted in decisions (e.g. an episode limit in decisions, with the
+:class:`~torchrl_options.transforms.DecisionCounter`); with the default, a primitive step towards a goal followed
+by an option is worth as much as the option alone, whatever the decision budget.
 """
 from __future__ import annotations
 
@@ -35,6 +41,7 @@ def smdp_transitions(
     reward_key: NestedKey = ("next", "reward"),
     done_key: NestedKey = ("next", "done"),
     steps_key: NestedKey = "steps_to_next_obs",
+    discount_per: str = "step",
 ) -> TensorDictBase:
     r"""Turns a batch of step-level data into one transition per decision.
 
@@ -56,6 +63,9 @@ def smdp_transitions(
         done_key (NestedKey): Defaults to ``("next", "done")``.
         steps_key (NestedKey): where ``k`` is written. Defaults to ``"steps_to_next_obs"``, the key that
             TorchRL's value estimators read.
+        discount_per (str): ``"step"`` (default: ``gamma`` per primitive step, the SMDP formulation) or
+            ``"decision"`` (rewards of a decision summed, ``k = 1``: ``gamma`` per decision; see the module
+            docstring).
 
     Returns:
         A TensorDict of shape ``[M]``, one entry per decision: the root entries of the decision step
@@ -84,7 +94,7 @@ def smdp_transitions(
         >>> out["next", "observation"]  # the 3-step option ends at the next decision, s_3
         tensor([3., 4.])
     """
-    out, _ = _decisions(data, gamma, None, _Keys(decision_key, reward_key, done_key, steps_key))
+    out, _ = _decisions(data, gamma, None, _Keys(decision_key, reward_key, done_key, steps_key), _per_decision(discount_per))
     return out
 
 
@@ -101,6 +111,7 @@ class SMDPTransitions:
 
     Keyword Args:
         decision_key, reward_key, done_key, steps_key (NestedKey): as in :func:`smdp_transitions`.
+        discount_per (str): ``"step"`` (default) or ``"decision"``, as in :func:`smdp_transitions`.
 
     Examples:
         >>> from torchrl.collectors import Collector
@@ -118,8 +129,10 @@ class SMDPTransitions:
         reward_key: NestedKey = ("next", "reward"),
         done_key: NestedKey = ("next", "done"),
         steps_key: NestedKey = "steps_to_next_obs",
+        discount_per: str = "step",
     ):
         self.gamma = gamma
+        self.per_decision = _per_decision(discount_per)
         self.keys = _Keys(decision_key, reward_key, done_key, steps_key)
         self._carry: _Carry | None = None
 
@@ -133,7 +146,7 @@ class SMDPTransitions:
                 carry.td.shape[0],
             )
             carry = None
-        out, self._carry = _decisions(data, self.gamma, carry, self.keys)
+        out, self._carry = _decisions(data, self.gamma, carry, self.keys, self.per_decision)
         return out
 
     def reset(self) -> None:
@@ -144,6 +157,12 @@ class SMDPTransitions:
     def num_pending(self) -> int:
         """Number of envs whose current decision is still running."""
         return 0 if self._carry is None else int(self._carry.valid.sum())
+
+
+def _per_decision(discount_per: str) -> bool:
+    if discount_per not in ("step", "decision"):
+        raise ValueError(f"discount_per must be 'step' or 'decision', got {discount_per!r}.")
+    return discount_per == "decision"
 
 
 class _Keys:
@@ -164,7 +183,7 @@ class _Carry:
 
 
 def _decisions(
-    data: TensorDictBase, gamma: float, carry: _Carry | None, keys: _Keys
+    data: TensorDictBase, gamma: float, carry: _Carry | None, keys: _Keys, per_decision: bool = False
 ) -> tuple[TensorDictBase, _Carry]:
     if data.ndim == 0:
         raise ValueError("smdp_transitions expects data with a time dimension (shape [T] or [*B, T]).")
@@ -206,6 +225,8 @@ def _decisions(
     # discount exponent of each step inside its segment, counted in primitive steps
     elapsed = steps.cumsum(1) - steps  # steps before t in the row
     exponent = elapsed - elapsed.gather(1, start_time)
+    if per_decision:  # one time-step per decision: the decision's rewards are summed undiscounted
+        exponent = torch.zeros_like(exponent)
     discount = torch.pow(torch.as_tensor(gamma, dtype=reward.dtype, device=device), exponent.to(reward.dtype))
     segment = (torch.arange(N, device=device).unsqueeze(1) * T + start_time).reshape(-1)
     discount = discount.reshape(N, T, *([1] * (reward.ndim - 2)))
@@ -223,7 +244,8 @@ def _decisions(
     flat = data.reshape(-1)
     ends = complete.nonzero().squeeze(-1)
     starts = segment[ends]
-    out = _assemble(flat, starts, ends, returns, length.reshape(-1), keys)
+    k = torch.ones_like(length) if per_decision else length
+    out = _assemble(flat, starts, ends, returns, k.reshape(-1), keys)
 
     last = torch.arange(N, device=device) * T + T - 1
     carried = _assemble(flat, segment[last], last, returns, length.reshape(-1), keys, steps_entry=False)
