@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,3 +123,16 @@ def test_merge_results_recipe(tmp_path):
     assert (out / "summary.md").read_text() == summary
     assert "| supervised | H1u | 3 | 10 | 1.000 [1.000, 1.000] | 2 [2, 2] | 3/3 |" in summary
     assert (out / "curves.png").read_bytes()[:8] == PNG
+
+
+def test_two_rooms_ao_diagnostic(tmp_path):
+    """The AO diagnostic: per chunk of episodes, a return, a share of primitive decisions in [0, 1] and finite
+    Q-values; with per-decision discounting too."""
+    diag = _load("two_rooms_ao_diagnostic")
+    for extra in ([], ["dqn.discount_per=decision"]):
+        rows = diag.main(["--episodes", "32", "--every", "16", "scale=tiny", f"out_dir={tmp_path}",
+                          "env.max_steps=100", "dqn.max_decisions=10", *extra])
+        assert [r[0] >= 16 * (i + 1) for i, r in enumerate(rows)] == [True, True]
+        for _, ret, share, q_primitive, q_option in rows:
+            assert 0.0 <= ret <= 1.0 and 0.0 <= share <= 1.0
+            assert torch.isfinite(torch.tensor([q_primitive, q_option])).all()
