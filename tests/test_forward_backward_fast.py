@@ -57,6 +57,14 @@ def assert_close_outputs(ref, out, dtype):
         assert torch.allclose(a, b, rtol=rtol, atol=atol), (name, (a - b).abs().max().item())
 
 
+def weighted_gradients(xs, mask, terminal, weights, backend):
+    """The gradients of ``sum(weights * log P)`` with respect to the four inputs, and the backend's output."""
+    leaves = [x.clone().requires_grad_() for x in xs]
+    out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
+    (out.log_likelihood * weights).sum().backward()
+    return [x.grad for x in leaves], out
+
+
 CASES = [
     # B, T, K, dtype, pad, ninf, sharp
     (5, 37, 3, torch.float64, True, 0.2, 1.0),
@@ -97,15 +105,12 @@ def test_chunked_gradients_equal_reference(dtype):
     weights = torch.rand(6, dtype=dtype)
     grads = {}
     for backend in ("reference", "chunked"):
-        leaves = [x.clone().requires_grad_() for x in xs]
-        out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
-        (out.log_likelihood * weights).sum().backward()
-        grads[backend] = [x.grad for x in leaves]
+        grads[backend], out = weighted_gradients(xs, mask, terminal, weights, backend)
         # the gradient is the Expectation-Gradient of the backend's own marginals
         g = weights.view(-1, 1, 1)
-        torch.testing.assert_close(leaves[0].grad, g * out.u)
-        torch.testing.assert_close(leaves[2].grad, g * out.w)
-        torch.testing.assert_close(leaves[3].grad, g * out.v)
+        torch.testing.assert_close(grads[backend][0], g * out.u)
+        torch.testing.assert_close(grads[backend][2], g * out.w)
+        torch.testing.assert_close(grads[backend][3], g * out.v)
     tol = dict(rtol=1e-5, atol=2e-6) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
     for a, b in zip(grads["reference"], grads["chunked"]):
         torch.testing.assert_close(a, b, **tol)
@@ -205,7 +210,7 @@ _INTERPRET_SCRIPT = textwrap.dedent(
     warnings.simplefilter("ignore")
     import torch
     sys.path.insert(0, os.path.dirname(os.path.abspath({test_file!r})))
-    from test_forward_backward_fast import make_case, assert_close_outputs
+    from test_forward_backward_fast import make_case, assert_close_outputs, weighted_gradients
     from torchrl_options.inference.forward_backward import forward_backward, resolve_backend
     cases = [(5, 9, 3, torch.float32, 0.2), (4, 7, 5, torch.float64, 0.2), (3, 1, 4, torch.float32, 0.0),
              (3, 6, 2, torch.float32, 0.0), (2, 5, 17, torch.float32, 0.1)]
@@ -216,10 +221,7 @@ _INTERPRET_SCRIPT = textwrap.dedent(
         weights = torch.rand(B, dtype=dtype) + 0.5
         grads = {{}}
         for backend in ("reference", "triton"):
-            leaves = [x.clone().requires_grad_() for x in xs]
-            out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
-            (out.log_likelihood * weights).sum().backward()
-            grads[backend] = [x.grad for x in leaves]
+            grads[backend], out = weighted_gradients(xs, mask, terminal, weights, backend)
         assert_close_outputs(ref, out, dtype)
         # the fused gradient kernel: the Expectation-Gradient of the kernel's own marginals, and the reference's
         torch.testing.assert_close(grads["triton"][0], weights[:, None, None] * out.u, rtol=0, atol=0)
@@ -272,10 +274,7 @@ def test_triton_cuda_gradients_match_reference(B, T, K):
     weights = torch.rand(B, device="cuda") + 0.5
     grads = {}
     for backend in ("reference", "triton"):
-        leaves = [x.clone().requires_grad_() for x in xs]
-        out = forward_backward(*leaves, mask=mask, terminal=terminal, backend=backend)
-        (out.log_likelihood * weights).sum().backward()
-        grads[backend] = [x.grad for x in leaves]
+        grads[backend], out = weighted_gradients(xs, mask, terminal, weights, backend)
     torch.testing.assert_close(grads["triton"][0], weights[:, None, None] * out.u, rtol=0, atol=0)
     torch.testing.assert_close(grads["triton"][3], weights[:, None, None] * out.v, rtol=0, atol=0)
     for a, b in zip(grads["reference"], grads["triton"]):

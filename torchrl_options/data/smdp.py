@@ -94,7 +94,8 @@ def smdp_transitions(
         >>> out["next", "observation"]  # the 3-step option ends at the next decision, s_3
         tensor([3., 4.])
     """
-    out, _ = _decisions(data, gamma, None, _Keys(decision_key, reward_key, done_key, steps_key), _per_decision(discount_per))
+    keys = _Keys(decision_key, reward_key, done_key, steps_key)
+    out, _ = _decisions(data, gamma, None, keys, _per_decision(discount_per))
     return out
 
 
@@ -224,10 +225,11 @@ def _decisions(
     is_last[:, :-1] &= start[:, 1:]
     # discount exponent of each step inside its segment, counted in primitive steps
     elapsed = steps.cumsum(1) - steps  # steps before t in the row
-    exponent = elapsed - elapsed.gather(1, start_time)
     if per_decision:  # one time-step per decision: the decision's rewards are summed undiscounted
-        exponent = torch.zeros_like(exponent)
-    discount = torch.pow(torch.as_tensor(gamma, dtype=reward.dtype, device=device), exponent.to(reward.dtype))
+        discount = torch.ones(N, T, dtype=reward.dtype, device=device)
+    else:
+        exponent = elapsed - elapsed.gather(1, start_time)
+        discount = torch.pow(torch.as_tensor(gamma, dtype=reward.dtype, device=device), exponent.to(reward.dtype))
     segment = (torch.arange(N, device=device).unsqueeze(1) * T + start_time).reshape(-1)
     discount = discount.reshape(N, T, *([1] * (reward.ndim - 2)))
     returns = torch.zeros_like(reward.reshape(N * T, *reward.shape[2:])).index_add_(
