@@ -9,6 +9,7 @@ Run:
     python recipes/atari_ram.py preset=smoke game=Seaquest          # about a minute on 2 CPU cores
     python recipes/atari_ram.py preset=gpu-hour game=Pooyan          # about an hour on a 16-core GPU machine
     python recipes/atari_ram.py preset=paper sweep.backend=ray sweep.ray_address=auto
+    python recipes/atari_ram.py preset=cores16 "conditions=[A,H1,A0,H1w]"   # with the control and the warm start
 
 Writes to ``out_dir``: ``results.csv`` (one row per episode and cell, re-runs skip finished cells),
 ``summary.md``, ``curves.png``, ``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.
@@ -29,6 +30,8 @@ from torchrl_options.experiments.atari import (
     atari_cells,
     atari_comparison,
     atari_summary_markdown,
+    atari_summary_pairs,
+    option_usage_markdown,
     run_atari_cell,
 )
 
@@ -68,18 +71,26 @@ def run(cfg: DictConfig) -> list:
 
 
 def sweep_cells(cfg: DictConfig) -> list:
-    """The cells of the sweep: ``game`` (or ``games``) x ``seeds`` (a count, or a list of seeds) x (A, H1)."""
+    """The cells of the sweep: ``game`` (or ``games``) x ``seeds`` (a count, or a list of seeds) x ``conditions``."""
     games = [cfg.game] if cfg.get("game") else list(cfg.games)
     seeds = cfg.seeds
-    return atari_cells(games, int(seeds) if isinstance(seeds, (int, str)) else [int(s) for s in seeds])
+    conditions = list(cfg.get("conditions") or ["A", "H1"])
+    return atari_cells(games, int(seeds) if isinstance(seeds, (int, str)) else [int(s) for s in seeds], conditions)
 
 
 def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: AtariConfig) -> None:
-    """``summary.md`` (options vs baseline per game, then the generic per-condition table) and ``curves.png``."""
-    comparisons = atari_comparison(results, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window)
-    text = atari_summary_markdown(
-        comparisons, final_window=cfg.final_window, header=f"# Atari RAM: options (H1) vs actions only (A), preset `{cfg.preset_name}`"
-    )
+    """``summary.md`` (per game, each pair of conditions that ran, the paper's H1 vs A first; option usage; the
+    generic per-condition table) and ``curves.png``."""
+    conditions = sorted({r["condition"] for r in results.rows()})
+    text = f"# Atari RAM, preset `{cfg.preset_name}`\n\n"
+    for condition, baseline in atari_summary_pairs(conditions):
+        comparisons = atari_comparison(results, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window,
+                                       condition=condition, baseline=baseline)
+        text += atari_summary_markdown(comparisons, final_window=cfg.final_window,
+                                       header=f"## {condition} vs {baseline}") + "\n"
+    usage = option_usage_markdown(out_dir)
+    if usage:
+        text += "## Option usage in phase 3 (from the replay buffer)\n\n" + usage + "\n"
     text += (
         f"\nBudget per cell: {config.phase1_episodes} phase-1 episodes (shared), {config.num_demonstrations} "
         f"greedy trajectories, DDO {config.ddo_iterations} iterations, {config.phase3_episodes} phase-3 episodes; "

@@ -48,6 +48,10 @@ def test_presets_compose():
     names = [c.name for c in recipe.sweep_cells(_config(["atari_preset=cores16", "seeds=[3,5]", "game=Pooyan"]))]
     assert names == ["Pooyan-A-seed3", "Pooyan-A-seed5", "Pooyan-H1-seed3", "Pooyan-H1-seed5"]
     assert len(recipe.sweep_cells(_config(["atari_preset=cores16"]))) == 5 * 3 * 2
+    four = recipe.sweep_cells(_config(["atari_preset=smoke", "conditions=[A,H1,A0,H1w]"]))
+    assert [c.condition for c in four] == ["A", "H1", "A0", "H1w"]
+    with pytest.raises(ValueError, match="conditions must be a non-empty list of .*got \\['A', 'H2'\\]"):
+        recipe.sweep_cells(_config(["atari_preset=smoke", "conditions=[A,H2]"]))
 
 
 def test_smoke_end_to_end_and_resume(tmp_path):
@@ -142,3 +146,38 @@ def test_smoke_all_five_games(tmp_path):
     summary = (tmp_path / "summary.md").read_text()
     assert all(f"| {g} |" in summary for g in ATARI_GAMES)
     assert "of 5 games" in summary
+
+
+def test_control_and_warm_start_conditions(tmp_path):
+    """A0 (actions, Q reset) and H1w (options added to phase 1's DQN) beside the paper's A and H1: all four share
+    phases 1 and 2, and the summary reports each pair and the option usage."""
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w]",
+                   "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
+                   "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
+                   "atari.learning_starts=8"])
+    ran = recipe.run(cfg)
+    assert sorted(c.condition for c in ran) == ["A", "A0", "H1", "H1w"]
+    rows = _rows(tmp_path / "results.csv")
+    by = {c: [r for r in rows if r["condition"] == c] for c in ("A", "H1", "A0", "H1w")}
+    p1 = cfg.atari.phase1_episodes
+    for c, r in by.items():
+        assert len(r) == p1 + cfg.atari.phase3_episodes, c
+        assert [x["return"] for x in r[:p1]] == [x["return"] for x in by["A"][:p1]], c  # phase 1 is shared
+    # A0 spends no demonstration frames; H1 and H1w do
+    seed_dir = tmp_path / "Pooyan" / "seed0"
+    import json
+
+    demo_frames = json.loads((seed_dir / "H1.json").read_text())["demo_frames"]
+    p1_end = int(by["A"][p1 - 1]["frames"])
+    first_len = lambda c: int(by[c][p1]["frames"]) - p1_end  # noqa: E731
+    assert first_len("A0") <= cfg.atari.max_episode_steps
+    assert first_len("H1w") > demo_frames and first_len("H1") > demo_frames
+    for c in ("H1", "H1w"):
+        info = json.loads((seed_dir / f"{c}.json").read_text())
+        assert 0.0 <= info["option_decision_share"] <= 1.0 and 0.0 <= info["option_step_share"] <= 1.0
+    summary = (tmp_path / "summary.md").read_text()
+    for header in ("## H1 vs A", "## H1w vs A", "## A0 vs A", "## H1 vs A0", "## Option usage in phase 3"):
+        assert header in summary
+    comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
+    assert comparison[0].condition == "H1w" and comparison[0].baseline == "A" and comparison[0].num_seeds == 1

@@ -35,6 +35,7 @@ from torchrl.envs import (
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
+from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
 from torchrl_options.data.smdp import SMDPTransitions
 from torchrl_options.transforms.decision_counter import DecisionCounter
 from torchrl_options.transforms.option_executor import OptionExecutor
@@ -387,6 +388,67 @@ class OptionsDQN:
         self.log = TrainingLog(**{k: list(v) for k, v in state["log"].items()})
         if "replay_buffer" in state:
             self.replay_buffer.load_state_dict(state["replay_buffer"])
+
+    @torch.no_grad()
+    def warm_start_from(self, source: OptionsDQN, *, copy_buffer: bool = True) -> OptionsDQN:
+        """Starts this agent (over actions + options) from ``source``, a trained agent over actions only.
+
+        Copies the online and target networks, the output layer widened by one row per option (each new row the
+        mean of the primitive rows: :func:`~torchrl_options.agents.warm_start.widen_action_rows`), and the replay
+        buffer (primitive decisions stay valid transitions of the augmented action space). The optimizer starts
+        afresh (the parameter shapes changed); frames, epsilon and the log are this agent's own. Fox et al. (2017)
+        restart the Q-function instead; this keeps what the agent learned before the options were added.
+
+        Args:
+            source (OptionsDQN): an agent with ``mode="actions"`` on the same env, with the same Q-network
+                architecture but for the output width.
+
+        Keyword Args:
+            copy_buffer (bool): also copy ``source``'s replay buffer (default ``True``).
+
+        Returns:
+            this agent.
+
+        Raises:
+            ValueError: ``source`` is not an actions-only agent, this one has no primitive actions, or their
+                action counts do not fit.
+
+        Examples:
+            >>> import torch
+            >>> from tensordict.nn import TensorDictModule
+            >>> from torchrl.envs import GymEnv
+            >>> make_env = lambda: GymEnv("CartPole-v1", categorical_action_encoding=True)
+            >>> base = OptionsDQN(make_env, OptionsDQNConfig(mode="actions", total_frames=128, frames_per_batch=64))
+            >>> _ = base.train()
+            >>> class Push(torch.nn.Module):
+            ...     def forward(self, obs):
+            ...         logits = torch.tensor([[5.0, -5.0], [-5.0, 5.0]]).expand(*obs.shape[:-1], 2, 2)
+            ...         return logits, torch.full((*obs.shape[:-1], 2), -1.1)
+            >>> options = TensorDictModule(Push(), ["observation"], ["option_logits", "termination_logits"])
+            >>> agent = OptionsDQN(make_env, OptionsDQNConfig(mode="both", total_frames=128, frames_per_batch=64),
+            ...                    options=options, num_options=2).warm_start_from(base)
+            >>> len(agent.replay_buffer) == len(base.replay_buffer)
+            True
+        """
+        if source.config.mode != "actions":
+            raise ValueError(f"warm_start_from: source must have mode='actions', got {source.config.mode!r}.")
+        if self.config.mode != "both":
+            raise ValueError(
+                f"warm_start_from: this agent must have mode='both' (primitive actions first), got {self.config.mode!r}."
+            )
+        n_source = int(source.env.full_action_spec_unbatched["action"].n)
+        n_self = int(self.env.full_action_spec_unbatched["action"].n)
+        if n_self - n_source != (self.num_options or 0):
+            raise ValueError(
+                f"warm_start_from: the source has {n_source} actions and this agent {n_self} = actions + "
+                f"{self.num_options} options; expected {n_source} + {self.num_options}."
+            )
+        state = widen_action_rows(source.loss_module.state_dict(), self.loss_module.state_dict(), n_source)
+        self.loss_module.load_state_dict(state)
+        if copy_buffer and len(source.replay_buffer):
+            data = source.replay_buffer[: len(source.replay_buffer)].exclude("index")
+            self.replay_buffer.extend(widen_action_values(data.to(self.device), n_self))
+        return self
 
     def save(self, path, include_buffer: bool = False) -> None:
         torch.save(self.state_dict(include_buffer=include_buffer), path)

@@ -4,16 +4,19 @@ Fox, Krishnan, Stoica, Goldberg, "Multi-Level Discovery of Deep Options", 2017, 
 actions for N episodes; 100 greedy trajectories of that DQN; DDO with K options per game; then DQN over actions
 and options from a reset Q-function, against the baseline that continues the first DQN with actions only.
 
-A cell is ``(game, condition, seed)`` with condition ``"A"`` (the baseline, continuing) or ``"H1"`` (options).
-The two conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes the
-second cell wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its
+A cell is ``(game, condition, seed)``. The conditions: ``"A"``, the baseline (phase 1's DQN continued with actions
+only); ``"H1"``, the paper's (actions + options, Q-function reset); and two that the paper does not run:
+``"A0"``, a control (actions only, Q-function reset: what the reset alone costs) and ``"H1w"``, options added
+to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`). The paper's
+comparison is ``H1`` against ``A``. The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes the
+later cells wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its
 end and every ``checkpoint_every`` episodes, and resumes from there.
 
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
 ``frames`` is the cumulative number of env steps (agent steps; ``frame_skip`` emulator frames each) at the end of
-each episode, counted from the start of phase 1; for ``H1`` it includes the frames of the greedy demonstrations
-of phase 2, which the baseline does not spend.
+each episode, counted from the start of phase 1; for ``H1`` and ``H1w`` it includes the frames of the greedy
+demonstrations of phase 2, which the baseline does not spend.
 """
 from __future__ import annotations
 
@@ -44,11 +47,14 @@ __all__ = [
     "atari_comparison",
     "atari_summary_markdown",
     "write_option_frames",
+    "option_usage",
+    "option_usage_markdown",
+    "atari_summary_pairs",
 ]
 
 logger = logging.getLogger(__name__)
 
-CONDITIONS = ("A", "H1")
+CONDITIONS = ("A", "H1", "H1w", "A0")
 
 
 @dataclass
@@ -142,7 +148,7 @@ class AtariConfig:
         return PAPER_NUM_OPTIONS.get(game, 4)
 
 
-def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Sequence[str] = CONDITIONS) -> list[Cell]:
+def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Sequence[str] = ("A", "H1")) -> list[Cell]:
     """The cells of a sweep, conditions outermost: the first cells of a pool then run the phases 1 and 2 of
     different seeds in parallel, and the other condition's cells find them cached (rather than wait on a lock).
 
@@ -150,6 +156,9 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
         >>> [c.name for c in atari_cells(["Pooyan"], 2)]
         ['Pooyan-A-seed0', 'Pooyan-A-seed1', 'Pooyan-H1-seed0', 'Pooyan-H1-seed1']
     """
+    bad = [c for c in conditions if c not in CONDITIONS]
+    if bad or not conditions:
+        raise ValueError(f"conditions must be a non-empty list of {CONDITIONS}, got {list(conditions)}.")
     seeds = range(seeds) if isinstance(seeds, int) else seeds
     return [Cell(g, c, int(s)) for c in conditions for g in games for s in seeds]
 
@@ -338,11 +347,46 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     return options, metadata
 
 
+def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
+    """How much an agent over actions + options used its options, from the decisions in its replay buffer.
+
+    Reads the decisions stored from position ``start`` on (to skip decisions copied in by a warm start), up to
+    the buffer's capacity. A decision is an option when its action index is ``num_actions`` or more.
+
+    Returns:
+        ``option_decision_share`` (fraction of decisions that started an option), ``option_step_share``
+        (fraction of env steps spent inside options) and ``mean_option_steps`` (mean steps per option run;
+        NaN when no option ran).
+
+    Examples:
+        >>> import torch
+        >>> from types import SimpleNamespace
+        >>> from tensordict import TensorDict
+        >>> buf = TensorDict(action=torch.tensor([0, 3, 1, 4]), steps_to_next_obs=torch.tensor([[1], [5], [1], [3]]),
+        ...                  batch_size=[4])
+        >>> option_usage(SimpleNamespace(replay_buffer=buf), num_actions=3)
+        {'option_decision_share': 0.5, 'option_step_share': 0.8, 'mean_option_steps': 4.0}
+    """
+    n = len(agent.replay_buffer)
+    if n <= start:
+        return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
+    data = agent.replay_buffer[start:n]
+    is_option = data.get("action").reshape(-1) >= num_actions
+    steps = data.get("steps_to_next_obs").reshape(-1).float()
+    option_steps = steps[is_option]
+    return {
+        "option_decision_share": float(is_option.float().mean()),
+        "option_step_share": float(option_steps.sum() / steps.sum()),
+        "mean_option_steps": float(option_steps.mean()) if option_steps.numel() else float("nan"),
+    }
+
+
 def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> CellResult:
     """Runs one ``(game, condition, seed)`` cell of the Atari RAM experiment, resuming from its checkpoints.
 
     Args:
-        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` ``"A"`` or ``"H1"``.
+        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of ``"A"``, ``"H1"``, ``"H1w"``,
+            ``"A0"`` (see the module docstring).
 
     Keyword Args:
         config (AtariConfig or dict): the settings.
@@ -378,16 +422,30 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         returns = list(agent.log.episode_returns[:total])
         frames = list(agent.log.episode_end_frames[:total])
         phase3 = {}
+    elif cell.condition == "A0":
+        # control: actions only from a reset Q-function, as H1 but without the options
+        agent = _make_agent(game, config, seed + 1000, "actions")
+        _load_if(agent, partial_path)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config)
+        returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
+        frames = p1_frames + [p1_total + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
+        phase3 = {}
     else:
         k = metadata["num_options"]
         agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k)
+        copied = 0
+        if cell.condition == "H1w":
+            # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
+            # the networks reached since (its buffer is not saved: the copied one stands in for it)
+            agent.warm_start_from(phase1_agent)
+            copied = len(agent.replay_buffer)
         _load_if(agent, partial_path)
         _train_episodes(agent, config.phase3_episodes, partial_path, config)
         offset = p1_total + int(metadata["demo_frames"])
         returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
         frames = p1_frames + [offset + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
-        phase3 = {"num_options": k}
-        if config.option_frames and seed == 0:
+        phase3 = {"num_options": k, **option_usage(agent, _num_actions(game, config), start=copied)}
+        if config.option_frames and seed == 0 and cell.condition == "H1":
             try:
                 write_option_frames(phase1_agent, options, game, config, seed,
                                     os.path.join(out_dir, "option_frames", game))
@@ -461,13 +519,14 @@ def write_option_frames(agent, options, game: str, config: AtariConfig, seed: in
 # ---------------------------------------------------------------------------------------------- summary
 @dataclass
 class AtariComparison:
-    """Options (``H1``) against the baseline (``A``) in one game, over seeds that finished both.
+    """A condition (``H1`` by default) against a baseline (``A`` by default) in one game, over seeds that finished
+    both. (Fields are named for the paper's pair: ``options_*`` is ``condition``, ``baseline_*`` is ``baseline``.)
 
     ``*_episodes``: mean return over the phase-3 episodes (the paper's "learns faster": area under the curve);
     ``final_*``: mean over the last ``final_window`` episodes, both at equal episodes. ``*_frames``: mean return
     of the episodes ending within the first ``F`` frames after phase 1, ``F`` the smaller of the two conditions'
-    phase-3 frame budgets in that seed (``H1``'s demonstration frames count against it). Each is
-    ``(mean, low, high)`` over seeds; ``diff_*`` is the paired difference ``H1 - A``.
+    phase-3 frame budgets in that seed (the demonstration frames count against conditions with options). Each is
+    ``(mean, low, high)`` over seeds; ``diff_*`` is the paired difference ``condition - baseline``.
     """
 
     game: str
@@ -484,20 +543,23 @@ class AtariComparison:
     diff_frames: tuple[float, float, float]
     equal_frames: float
     extra: dict = field(default_factory=dict)
+    condition: str = "H1"
+    baseline: str = "A"
 
 
-def _verdict(diff: tuple[float, float, float]) -> str:
+def _verdict(diff: tuple[float, float, float], condition: str = "options", baseline: str = "baseline") -> str:
     m, lo, hi = diff
     if lo > 0:
-        return "options"
+        return condition
     if hi < 0:
-        return "baseline"
-    return f"options (n.s.)" if m > 0 else ("baseline (n.s.)" if m < 0 else "tie")
+        return baseline
+    return f"{condition} (n.s.)" if m > 0 else (f"{baseline} (n.s.)" if m < 0 else "tie")
 
 
 def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, final_window: int = 100,
-                     confidence: float = 0.95) -> list[AtariComparison]:
-    """Per game, options against baseline at equal episodes and at equal frames (bootstrap intervals over seeds).
+                     confidence: float = 0.95, condition: str = "H1", baseline: str = "A") -> list[AtariComparison]:
+    """Per game, ``condition`` against ``baseline`` at equal episodes and at equal frames (bootstrap intervals over
+    seeds). The default is the paper's pair: options (``H1``) against actions only, continued (``A``).
 
     Examples:
         >>> rows = []
@@ -517,15 +579,15 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
         data[r["setting"]][r["condition"]].setdefault(r["seed"], []).append((r["return"], r.get("frames")))
     out = []
     for game, conds in data.items():
-        if "A" not in conds or "H1" not in conds:
+        if baseline not in conds or condition not in conds:
             continue
-        seeds = sorted(set(conds["A"]) & set(conds["H1"]))
+        seeds = sorted(set(conds[baseline]) & set(conds[condition]))
         if not seeds:
             continue
         per = defaultdict(list)
         budgets = []
         for s in seeds:
-            a, h = conds["A"][s][phase1_episodes:], conds["H1"][s][phase1_episodes:]
+            a, h = conds[baseline][s][phase1_episodes:], conds[condition][s][phase1_episodes:]
             n = min(len(a), len(h))
             if n == 0:
                 continue
@@ -535,7 +597,7 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
             per["H_ep"].append(rh.mean())
             per["A_fin"].append(ra[-w:].mean())
             per["H_fin"].append(rh[-w:].mean())
-            start_a = conds["A"][s][phase1_episodes - 1][1] if phase1_episodes else 0
+            start_a = conds[baseline][s][phase1_episodes - 1][1] if phase1_episodes else 0
             start_h = start_a or 0
             fa = np.array([x[1] for x in a[:n]], dtype=float) - (start_a or 0)
             fh = np.array([x[1] for x in h[:n]], dtype=float) - start_h
@@ -555,7 +617,7 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
             AtariComparison(
                 game=game,
                 num_seeds=len(per["A_ep"]),
-                phase3_episodes=min(len(conds["A"][s]) for s in seeds) - phase1_episodes,
+                phase3_episodes=min(len(conds[baseline][s]) for s in seeds) - phase1_episodes,
                 baseline_episodes=ci(per["A_ep"]),
                 options_episodes=ci(per["H_ep"]),
                 diff_episodes=d("H_ep", "A_ep"),
@@ -566,6 +628,8 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
                 options_frames=ci(per["H_fr"]),
                 diff_frames=d("H_fr", "A_fr"),
                 equal_frames=float(np.mean(budgets)),
+                condition=condition,
+                baseline=baseline,
             )
         )
     return out
@@ -573,20 +637,31 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
 
 def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_window: int = 100,
                            header: str | None = None) -> str:
-    """The per-game table of :func:`atari_comparison` in Markdown, with a verdict per comparison and a count."""
+    """The per-game table of :func:`atari_comparison` in Markdown, with a verdict per comparison and a count.
+
+    ``comparisons`` should share one ``(condition, baseline)`` pair (one call per pair); the table names them.
+    """
 
     def f(x):
         return f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"
 
+    c_name = comparisons[0].condition if comparisons else "H1"
+    b_name = comparisons[0].baseline if comparisons else "A"
+    what = {
+        "H1": "DQN over actions + DDO options from a reset Q-function",
+        "H1w": "DQN over actions + DDO options, started from phase 1's DQN (output layer widened, replay kept)",
+        "A0": "DQN over actions only from a reset Q-function",
+        "A": "the phase-1 DQN continued with actions only",
+    }
     lines = [header + "\n"] if header else []
     lines += [
         "Returns of phase 3 (after the shared phase 1), mean over seeds with 95% bootstrap intervals. "
-        "`H1`: DQN over actions + DDO options from a reset Q-function; `A`: the phase-1 DQN continued with actions "
-        "only. Verdict: whose interval of the paired difference H1 - A lies above (or below) 0; *n.s.* when it "
-        "contains 0.\n",
-        "| game | seeds | phase-3 episodes | A, mean over episodes | H1, mean over episodes | H1 - A | better "
-        f"(equal episodes) | A, last {final_window} | H1, last {final_window} | H1 - A | "
-        "equal frames (phase 3) | A at equal frames | H1 at equal frames | H1 - A | better (equal frames) |",
+        f"`{c_name}`: {what.get(c_name, c_name)}; `{b_name}`: {what.get(b_name, b_name)}. Verdict: whose interval of "
+        f"the paired difference {c_name} - {b_name} lies above (or below) 0; *n.s.* when it contains 0.\n",
+        f"| game | seeds | phase-3 episodes | {b_name}, mean over episodes | {c_name}, mean over episodes | "
+        f"{c_name} - {b_name} | better (equal episodes) | {b_name}, last {final_window} | {c_name}, last "
+        f"{final_window} | {c_name} - {b_name} | equal frames (phase 3) | {b_name} at equal frames | {c_name} at "
+        f"equal frames | {c_name} - {b_name} | better (equal frames) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     ahead = 0
@@ -594,12 +669,53 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
         ahead += c.diff_episodes[0] > 0
         lines.append(
             f"| {c.game} | {c.num_seeds} | {c.phase3_episodes} | {f(c.baseline_episodes)} | {f(c.options_episodes)} | "
-            f"{f(c.diff_episodes)} | {_verdict(c.diff_episodes)} | {f(c.baseline_final)} | {f(c.options_final)} | "
-            f"{f(c.diff_final)} | {c.equal_frames:.0f} | {f(c.baseline_frames)} | {f(c.options_frames)} | "
-            f"{f(c.diff_frames)} | {_verdict(c.diff_frames)} |"
+            f"{f(c.diff_episodes)} | {_verdict(c.diff_episodes, c_name, b_name)} | {f(c.baseline_final)} | "
+            f"{f(c.options_final)} | {f(c.diff_final)} | {c.equal_frames:.0f} | {f(c.baseline_frames)} | "
+            f"{f(c.options_frames)} | {f(c.diff_frames)} | {_verdict(c.diff_frames, c_name, b_name)} |"
         )
     lines.append("")
     lines.append(
-        f"Options ahead of the baseline at equal episodes (mean over phase 3) in {ahead} of {len(comparisons)} games."
+        f"`{c_name}` ahead of `{b_name}` at equal episodes (mean over phase 3) in {ahead} of {len(comparisons)} games."
     )
+    return "\n".join(lines) + "\n"
+
+
+#: the pairs that :func:`atari_summary_pairs` reports, when both conditions ran: the paper's comparison first
+SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("A0", "A"), ("H1", "A0"))
+
+
+def atari_summary_pairs(conditions: Sequence[str]) -> list[tuple[str, str]]:
+    """The ``(condition, baseline)`` pairs to report for a sweep over ``conditions``.
+
+    Examples:
+        >>> atari_summary_pairs(["A", "H1", "A0"])
+        [('H1', 'A'), ('A0', 'A'), ('H1', 'A0')]
+    """
+    have = set(conditions)
+    return [(c, b) for c, b in SUMMARY_PAIRS if c in have and b in have]
+
+
+def option_usage_markdown(out_dir: str) -> str:
+    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w`` cells under ``out_dir``
+    (mean over seeds of :func:`option_usage`); empty when there is none."""
+    import glob
+
+    usage: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "H1*.json"))):
+        game, condition = path.split(os.sep)[-3], os.path.splitext(os.path.basename(path))[0]
+        with open(path) as f:
+            info = json.load(f)
+        if "option_decision_share" in info:
+            usage[(game, condition)].append(info)
+    if not usage:
+        return ""
+    keys = ("option_decision_share", "option_step_share", "mean_option_steps")
+    lines = [
+        "| game | condition | seeds | decisions that start an option | env steps inside options | steps per option |",
+        "|---|---|---|---|---|---|",
+    ]
+    for (game, condition), infos in sorted(usage.items()):
+        means = [float(np.nanmean([i[k] for i in infos])) if any(np.isfinite(i[k]) for i in infos) else float("nan")
+                 for k in keys]
+        lines.append(f"| {game} | {condition} | {len(infos)} | {means[0]:.2f} | {means[1]:.2f} | {means[2]:.1f} |")
     return "\n".join(lines) + "\n"
