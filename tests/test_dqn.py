@@ -171,3 +171,22 @@ def test_cuda_agent_on_cpu_env_actions_arrive_intact():
 
     agent.train(callback=check)
     assert checked[0] >= 3_000
+
+
+def test_optimizer_factory():
+    made = []
+
+    def factory(params, lr):
+        made.append(lr)
+        return torch.optim.Adam(params, lr=lr, fused=True)
+
+    agent = OptionsDQN(corridor, config("actions", total_frames=128, lr=3e-3), optimizer=factory)
+    assert made == [3e-3] and agent.optimizer.defaults["fused"] is True
+    before = [p.detach().clone() for p in agent.loss_module.parameters()]
+    agent.train()
+    assert agent.gradient_steps > 0
+    assert any(not torch.equal(a, b) for a, b in zip(before, agent.loss_module.parameters()))  # it did step
+    default = OptionsDQN(corridor, config("actions"))
+    assert isinstance(default.optimizer, torch.optim.Adam) and not default.optimizer.defaults.get("fused")
+    with pytest.raises(TypeError, match="optimizer must make a torch.optim.Optimizer, got list"):
+        OptionsDQN(corridor, config("actions"), optimizer=lambda params, lr: list(params))

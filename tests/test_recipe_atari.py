@@ -90,6 +90,13 @@ def test_smoke_end_to_end_and_resume(tmp_path):
     assert atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1)[0].num_seeds == 1
 
 
+def test_fused_adam_setting():
+    config = AtariConfig(max_episode_steps=20, hidden_sizes=(8, 8, 8), fused_adam=True)
+    assert _make_agent("Pooyan", config, 0, "actions").optimizer.defaults["fused"] is True
+    assert not _make_agent("Pooyan", AtariConfig(hidden_sizes=(8, 8, 8)), 0, "actions").optimizer.defaults.get("fused")
+    assert _config(["atari_preset=smoke", "atari.fused_adam=true"]).atari.fused_adam is True
+
+
 def test_periodic_checkpoint_resumes_inside_a_phase(tmp_path):
     config = AtariConfig(max_episode_steps=20, noop_max=0, hidden_sizes=(8, 8, 8), learning_starts=16,
                          frames_per_batch=20, updates_per_batch=1, checkpoint_every=1)

@@ -144,6 +144,10 @@ class OptionsDQN:
         num_options (int, optional): ``K``; required with ``options``.
         q_network (nn.Module, optional): maps the observation to one value per augmented action. Defaults
             to an MLP with ``config.hidden_sizes``.
+        optimizer (Callable, optional): a factory called as ``optimizer(params, lr=config.lr)``. Defaults to
+            ``torch.optim.Adam``. ``functools.partial(torch.optim.Adam, fused=True)`` runs Adam as one fused
+            kernel: 4.3x faster per update on the Atari RAM one-hot network (1M parameters) on CPU
+            (``benchmarks/bench_dqn_update.py``).
 
     Attributes:
         env: the (batched, transformed) training env. ``env.full_action_spec_unbatched["action"]`` is the
@@ -178,6 +182,7 @@ class OptionsDQN:
         options: TensorDictModuleBase | None = None,
         num_options: int | None = None,
         q_network: nn.Module | None = None,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
     ):
         self.config = config = config or OptionsDQNConfig()
         if config.mode not in ("actions", "options", "both"):
@@ -217,7 +222,9 @@ class OptionsDQN:
             self.target_updater = HardUpdate(self.loss_module, value_network_update_interval=config.hard_update_interval)
         else:
             self.target_updater = SoftUpdate(self.loss_module, eps=config.soft_update_eps)
-        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=config.lr)
+        self.optimizer = (optimizer or torch.optim.Adam)(self.loss_module.parameters(), lr=config.lr)
+        if not isinstance(self.optimizer, torch.optim.Optimizer):
+            raise TypeError(f"optimizer must make a torch.optim.Optimizer, got {type(self.optimizer).__name__}.")
         self.replay_buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(config.buffer_size, device=self.device), batch_size=config.batch_size
         )
