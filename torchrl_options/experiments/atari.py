@@ -8,9 +8,9 @@ A cell is ``(game, condition, seed)``. The conditions: ``"A"``, the baseline (ph
 only); ``"H1"``, the paper's (actions + options, Q-function reset); and two that the paper does not run:
 ``"A0"``, a control (actions only, Q-function reset: what the reset alone costs) and ``"H1w"``, options added
 to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`). The paper's
-comparison is ``H1`` against ``A``. The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes the
-later cells wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its
-end and every ``checkpoint_every`` episodes, and resumes from there.
+comparison is ``H1`` against ``A``. The conditions of a seed share phases 1 and 2, cached in
+``<out>/<game>/seed<s>/`` (a file lock makes later cells wait for, then reuse, the first one's phase-1 checkpoint
+and options). Every phase checkpoints at its end and every ``checkpoint_every`` episodes, and resumes from there.
 
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
