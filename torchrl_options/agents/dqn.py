@@ -146,7 +146,7 @@ class OptionsDQN:
             to an MLP with ``config.hidden_sizes``.
         optimizer (Callable, optional): a factory called as ``optimizer(params, lr=config.lr)``. Defaults to
             ``torch.optim.Adam``. ``functools.partial(torch.optim.Adam, fused=True)`` runs Adam as one fused
-            kernel: 4.3x faster per update on the Atari RAM one-hot network (1M parameters) on CPU
+            kernel: several times faster per update on the Atari RAM one-hot network (1M parameters) on CPU
             (``benchmarks/bench_dqn_update.py``).
 
     Attributes:
