@@ -81,10 +81,10 @@ def sweep_cells(cfg: DictConfig) -> list:
 def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: AtariConfig) -> None:
     """``summary.md`` (per game, each pair of conditions that ran, the paper's H1 vs A first; option usage; the
     generic per-condition table) and ``curves.png``."""
-    conditions = sorted({r["condition"] for r in results.rows()})
+    rows = results.rows()  # read once for every pair
     text = f"# Atari RAM, preset `{cfg.preset_name}`\n\n"
-    for condition, baseline in atari_summary_pairs(conditions):
-        comparisons = atari_comparison(results, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window,
+    for condition, baseline in atari_summary_pairs({r["condition"] for r in rows}):
+        comparisons = atari_comparison(rows, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window,
                                        condition=condition, baseline=baseline)
         text += atari_summary_markdown(comparisons, final_window=cfg.final_window,
                                        header=f"## {condition} vs {baseline}") + "\n"

@@ -27,7 +27,7 @@ import logging
 import os
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from functools import partial
 from typing import Any
@@ -447,7 +447,8 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         offset = p1_total + int(metadata["demo_frames"])
         returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
         frames = p1_frames + [offset + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
-        phase3 = {"num_options": k, **option_usage(agent, _num_actions(game, config), start=copied)}
+        num_actions = int(agent.env.full_action_spec_unbatched["action"].n) - k  # augmented space: A + K
+        phase3 = {"num_options": k, **option_usage(agent, num_actions, start=copied)}
         if config.option_frames and seed == 0 and cell.condition == "H1":
             try:
                 write_option_frames(phase1_agent, options, game, config, seed,
@@ -687,7 +688,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
 SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("A0", "A"), ("H1", "A0"))
 
 
-def atari_summary_pairs(conditions: Sequence[str]) -> list[tuple[str, str]]:
+def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
     """The ``(condition, baseline)`` pairs to report for a sweep over ``conditions``.
 
     Examples:
