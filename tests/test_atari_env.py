@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 import torch
 from torchrl.envs import SerialEnv
+from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_options.envs.atari import (
     ATARI_GAMES,
     EpisodicLife,
+    NoopStart,
     PAPER_NUM_OPTIONS,
     RAMBytesEncoder,
     RAMOneHotEncoder,
@@ -138,3 +140,100 @@ def test_batched_env_specs_and_render():
     env.rollout(2)
     frame = render_frame(env)
     assert frame.shape == (210, 160, 3) and frame.dtype == np.uint8
+
+
+class _CountingEnv(gym.Env):
+    """Counts steps since reset (the observation); ends after ``horizon`` steps."""
+
+    observation_space = gym.spaces.Box(0, 1000, (1,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def __init__(self, horizon=1000):
+        self.horizon, self.t, self.resets, self.actions = horizon, 0, 0, []
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.resets = 0, self.resets + 1
+        return np.array([0.0], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        self.actions.append(int(action))
+        return np.array([self.t], np.float32), 0.0, self.t >= self.horizon, False, {}
+
+
+def test_noop_start_draws_uniform_counts_and_resets_at_game_over():
+    inner = _CountingEnv()
+    env = NoopStart(inner, noop_max=4)
+    counts = []
+    for i in range(400):
+        obs, _ = env.reset(seed=i)
+        counts.append(int(obs[0]))
+    assert set(counts) == {0, 1, 2, 3}  # [0, noop_max), as TorchRL's NoopResetEnv(random=True)
+    assert all(a == 0 for a in inner.actions)  # no-ops only
+    assert abs(np.mean(counts) - 1.5) < 0.25
+    # the same seed gives the same start
+    assert env.reset(seed=3)[0][0] == env.reset(seed=3)[0][0]
+    # a game over during the no-ops resets again
+    short = _CountingEnv(horizon=1)
+    env = NoopStart(short, noop_max=50)
+    for i in range(20):
+        obs, _ = env.reset(seed=i)
+        assert obs[0] == 0
+    assert short.resets > 20
+    with pytest.raises(ValueError, match="noop_max"):
+        NoopStart(_CountingEnv(), noop_max=0)
+
+
+@needs_ale
+def test_vector_env_batch_partial_reset_and_seeding():
+    def rollout(seed):
+        env = make_atari_ram_env("Pooyan", num_envs=3, max_episode_steps=12, noop_max=10, seed=seed)
+        torch.manual_seed(0)  # the random actions
+        return env, env.rollout(30, break_when_any_done=False)
+
+    env, data = rollout(5)
+    assert env.batch_size == (3,)
+    assert data.shape == (3, 30)
+    steps = data["next", "step_count"].squeeze(-1)
+    assert (steps[:, 11] == 12).all() and (steps[:, 12] == 1).all()  # truncated and reset at the step limit
+    assert data["next", "truncated"].squeeze(-1).sum(-1).tolist() == [2, 2, 2]
+    first = data["observation"][:, 0]
+    assert not torch.equal(first[0], first[1]) or not torch.equal(first[1], first[2])  # games seeded apart
+    # the same seed and actions reproduce the rollout, another seed does not
+    torch.testing.assert_close(rollout(5)[1], data)
+    assert not torch.equal(rollout(6)[1]["observation"], data["observation"])
+    check_env_specs(env)
+    # a partial reset starts only the masked game again
+    td = env.reset()
+    for _ in range(5):
+        td = env.rand_step(td)
+        td = td["next"].clone()
+    before = td["observation"].clone()
+    td.set("_reset", torch.tensor([[False], [True], [False]]))
+    out = env.reset(td)
+    assert out["step_count"].squeeze(-1).tolist() == [5, 0, 5]
+    torch.testing.assert_close(out["observation"][[0, 2]], before[[0, 2]])
+    env.close()
+    with pytest.raises(ValueError, match="num_envs"):
+        make_atari_ram_env("Pooyan", num_envs=0)
+    with pytest.raises(ValueError, match="render"):
+        make_atari_ram_env("Pooyan", num_envs=2, render=True)
+
+
+@needs_ale
+def test_vector_env_episodic_life_per_game():
+    env = make_atari_ram_env("SpaceInvaders", num_envs=2, episodic_life=True, noop_max=0, max_episode_steps=2000,
+                             seed=0)
+    torch.manual_seed(0)
+    data = env.rollout(600, break_when_any_done=False)
+    done = data["next", "terminated"].squeeze(-1)
+    steps = data["next", "step_count"].squeeze(-1)
+    for i in range(2):
+        ends = done[i].nonzero().squeeze(-1)
+        assert len(ends) >= 2  # an episode is a life: several per game in 600 steps
+        assert (steps[i, ends[:-1] + 1] == 1).all()  # each game starts its next episode on its own
+    # a lost life does not reset the emulator: some game is on with fewer lives than it started with
+    games = env.base_env._env.envs
+    assert any(not g.game_over and 0 < g.unwrapped.ale.lives() < 3 for g in games)
+    env.close()

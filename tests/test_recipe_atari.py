@@ -188,3 +188,33 @@ def test_control_and_warm_start_conditions(tmp_path):
         assert header in summary
     comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
     assert comparison[0].condition == "H1w" and comparison[0].baseline == "A" and comparison[0].num_seeds == 1
+
+
+def test_vector_env_cells(tmp_path):
+    """``atari.vector_env``: each agent's ``num_envs`` games in one gymnasium vector env (batch ``[num_envs]``); the
+    greedy demonstrations stay one game at a time; the pipeline and its outputs are unchanged."""
+    config = AtariConfig(max_episode_steps=20, hidden_sizes=(8, 8, 8), num_envs=3, vector_env=True, frames_per_batch=60)
+    agent = _make_agent("Pooyan", config, 0, "actions")
+    assert agent.env.batch_size == (3,) and agent.config.num_envs == 1
+    agent.train(total_frames=120)
+    assert len(agent.log.episode_returns) == 6 and agent.frames == 120  # 3 games x 2 episodes of 20 steps
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "atari.max_episode_steps=20",
+                   "atari.phase1_episodes=4", "atari.phase3_episodes=4", "atari.num_demonstrations=2",
+                   "atari.demo_max_steps=20", "atari.option_frames=false", "atari.learning_starts=8",
+                   "atari.num_envs=2", "atari.vector_env=true", "atari.frames_per_batch=20"])
+    assert sorted(c.condition for c in recipe.run(cfg)) == ["A", "H1"]
+    rows = _rows(tmp_path / "results.csv")
+    for cond in ("A", "H1"):
+        r = [row for row in rows if row["condition"] == cond]
+        assert len(r) == 8
+        frames = [int(row["frames"]) for row in r]
+        assert frames == sorted(frames)
+    import json
+
+    from torchrl_options import load_options
+
+    _, _, meta = load_options(tmp_path / "Pooyan" / "seed0" / "options.pt", with_meta_control=True)
+    assert len(meta["demo_returns"]) == 2
+    info = json.loads((tmp_path / "Pooyan" / "seed0" / "H1.json").read_text())
+    assert 0.0 <= info["option_step_share"] <= 1.0

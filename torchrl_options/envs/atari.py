@@ -21,6 +21,7 @@ Why the env does not one-hot encode: a 32768-float observation would make every 
 from __future__ import annotations
 
 import importlib.util
+from functools import partial
 from typing import Any
 
 import gymnasium as gym
@@ -47,6 +48,8 @@ __all__ = [
     "RAMBytesEncoder",
     "make_atari_ram_env",
     "atari_available",
+    "EpisodicLife",
+    "NoopStart",
 ]
 
 #: The paper's five RAM games.
@@ -96,6 +99,36 @@ class EpisodicLife(gym.Wrapper):
         return obs, info
 
 
+class NoopStart(gym.Wrapper):
+    """After each reset, a random number of no-op steps (action 0), uniform in ``[0, noop_max)``, drawn from the env's
+    own generator (seeded by ``reset(seed=...)``); the same distribution as TorchRL's ``NoopResetEnv(random=True)``.
+
+    A gymnasium wrapper, so that each env of a gymnasium vector env starts its episodes on its own (TorchRL's
+    ``NoopResetEnv`` supports single envs only). If the game ends during the no-ops, it is reset again.
+
+    Examples:
+        >>> import gymnasium as gym
+        >>> env = NoopStart(gym.make("CartPole-v1"), noop_max=5)
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape
+        (4,)
+    """
+
+    def __init__(self, env: gym.Env, noop_max: int):
+        super().__init__(env)
+        if noop_max < 1:
+            raise ValueError(f"noop_max must be at least 1, got {noop_max}.")
+        self.noop_max = int(noop_max)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        for _ in range(int(self.np_random.integers(0, self.noop_max))):
+            obs, _, terminated, truncated, info = self.env.step(0)
+            if terminated or truncated:
+                obs, info = self.env.reset()
+        return obs, info
+
+
 class RAMToFloat(ObservationTransform):
     """uint8 RAM bytes to float32 ``bytes / 255`` in [0, 1] (exact: ``round(x * 255)`` gives the bytes back).
 
@@ -142,6 +175,7 @@ def make_atari_ram_env(
     render: bool = False,
     seed: int | None = None,
     device: torch.device | str = "cpu",
+    num_envs: int = 1,
     **gym_kwargs: Any,
 ) -> TransformedEnv:
     """An Atari game with its RAM as observation, as a TorchRL env.
@@ -167,6 +201,13 @@ def make_atari_ram_env(
         render (bool): make ``render()`` return RGB frames (``render_mode="rgb_array"``), for videos.
         seed (int, optional): seeds the env.
         device: device of the env's outputs.
+        num_envs (int): with more than one, a batch of ``num_envs`` games in one gymnasium ``SyncVectorEnv``
+            (auto-reset disabled, so TorchRL resets each game on its own when it is done) with batch size
+            ``[num_envs]``. The TorchRL transforms then run once per step for the whole batch instead of once per
+            game, which is about twice the env steps/s of one game at a time on one core (``SerialEnv`` adds
+            little: ``benchmarks/bench_atari_envs.py``). No-op starts and end-of-life are gymnasium wrappers of
+            each game (:class:`NoopStart`, :class:`EpisodicLife`); with ``seed``, game ``i`` is seeded
+            ``seed + i``.
         **gym_kwargs: more keyword arguments of ``gymnasium.make``.
 
     Examples:
@@ -179,24 +220,40 @@ def make_atari_ram_env(
         raise ImportError("Atari envs need ale-py: pip install 'torchrl-options[atari]'.")
     if ram_encoding not in ("bytes", "uint8"):
         raise ValueError(f"ram_encoding must be 'bytes' or 'uint8', got {ram_encoding!r}.")
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+    if num_envs > 1 and render:
+        raise ValueError("render=True needs num_envs=1.")
     import ale_py
 
     gym.register_envs(ale_py)
-    base = gym.make(
-        _env_id(game),
-        obs_type="ram",
-        frameskip=frame_skip,
-        repeat_action_probability=repeat_action_probability,
-        full_action_space=full_action_space,
-        render_mode="rgb_array" if render else None,
-        **gym_kwargs,
-    )
-    if episodic_life:
-        base = EpisodicLife(base)
-    env = GymWrapper(base, categorical_action_encoding=True, device=device)
+
+    def make_game(vectorized: bool) -> gym.Env:
+        game_env = gym.make(
+            _env_id(game),
+            obs_type="ram",
+            frameskip=frame_skip,
+            repeat_action_probability=repeat_action_probability,
+            full_action_space=full_action_space,
+            render_mode="rgb_array" if render else None,
+            **gym_kwargs,
+        )
+        if episodic_life:
+            game_env = EpisodicLife(game_env)
+        if vectorized and noop_max > 0:
+            game_env = NoopStart(game_env, noop_max)
+        return game_env
+
     transforms = []
-    if noop_max > 0:
-        transforms.append(NoopResetEnv(noops=noop_max, random=True))
+    if num_envs == 1:
+        env = GymWrapper(make_game(False), categorical_action_encoding=True, device=device)
+        if noop_max > 0:
+            transforms.append(NoopResetEnv(noops=noop_max, random=True))
+    else:
+        vector_env = gym.vector.SyncVectorEnv(
+            [partial(make_game, True) for _ in range(num_envs)], autoreset_mode=gym.vector.AutoresetMode.DISABLED
+        )
+        env = GymWrapper(vector_env, categorical_action_encoding=True, device=device)
     if clip_rewards:
         transforms.append(RewardClipping(-1.0, 1.0))
     if ram_encoding == "bytes":

@@ -72,8 +72,10 @@ class AtariConfig:
 
     DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
     ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
-    ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` and
-    ``parallel`` (batched collection), ``device``, ``fused_adam`` (Adam as one fused kernel: the same algorithm,
+    ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` games
+    batched in a ``SerialEnv`` (``ParallelEnv`` with ``parallel``; one gymnasium ``SyncVectorEnv`` with
+    ``vector_env``, the fastest on few cores: see :func:`~torchrl_options.envs.atari.make_atari_ram_env`; the
+    greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the same algorithm,
     several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
     """
 
@@ -111,6 +113,7 @@ class AtariConfig:
     double_dqn: bool = False
     num_envs: int = 1
     parallel: bool = False
+    vector_env: bool = False
     device: str = "cpu"
     fused_adam: bool = False
     # outputs
@@ -168,10 +171,14 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
 # ---------------------------------------------------------------------------------------------- pipeline
 
 
-def _env_factory(game: str, config: AtariConfig, seed: int, render: bool = False):
+def _env_factory(game: str, config: AtariConfig, seed: int, render: bool = False, batched: bool = False):
+    """One game; with ``batched`` and ``config.vector_env``, the ``config.num_envs`` games of one vector env."""
     from torchrl_options.envs.atari import make_atari_ram_env
 
-    return partial(make_atari_ram_env, game, **config.env_kwargs(), render=render, ram_encoding="bytes")
+    num_envs = config.num_envs if batched and config.vector_env else 1
+    return partial(
+        make_atari_ram_env, game, **config.env_kwargs(), render=render, ram_encoding="bytes", num_envs=num_envs
+    )
 
 
 def _num_actions(game: str, config: AtariConfig) -> int:
@@ -191,7 +198,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
     q_net = ram_q_network(out, encoding=config.ram_encoding, num_cells=config.hidden_sizes)
     dqn_config = OptionsDQNConfig(
         mode=mode,
-        num_envs=config.num_envs,
+        num_envs=1 if config.vector_env else config.num_envs,  # a vector env is batched already
         parallel=config.parallel,
         total_frames=10**12,
         frames_per_batch=config.frames_per_batch,
@@ -212,7 +219,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         device=config.device,
     )
     return OptionsDQN(
-        _env_factory(game, config, seed), dqn_config, options=options, num_options=num_options, q_network=q_net,
+        _env_factory(game, config, seed, batched=True), dqn_config, options=options, num_options=num_options, q_network=q_net,
         optimizer=partial(torch.optim.Adam, fused=True) if config.fused_adam else None,
     )
 
