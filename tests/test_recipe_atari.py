@@ -35,7 +35,7 @@ def _rows(path):
 
 
 def test_presets_compose():
-    for preset in ("smoke", "cpu", "cpu-large", "cores16", "gpu-hour", "paper"):
+    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cores16", "gpu-hour", "paper"):
         cfg = _config([f"atari_preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
