@@ -75,8 +75,13 @@ class AtariConfig:
     ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` games
     batched in a ``SerialEnv`` (``ParallelEnv`` with ``parallel``; one gymnasium ``SyncVectorEnv`` with
     ``vector_env``, the fastest on few cores: see :func:`~torchrl_options.envs.atari.make_atari_ram_env`; the
-    greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the same algorithm,
-    several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
+    greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the
+    same algorithm, several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
+
+    With batched games, episodes end several at a time and a phase stops at the first collector batch that
+    completes its count: phase 1 may then have run up to ``num_envs - 1`` episodes more than
+    ``phase1_episodes``. They are part of ``A``'s continuation (the same agent), so ``A``'s first phase-3 episodes
+    may come from phase 1's last batch; the other conditions start new agents.
     """
 
     # env
