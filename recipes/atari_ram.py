@@ -31,6 +31,7 @@ from torchrl_options.experiments.atari import (
     atari_comparison,
     atari_summary_markdown,
     atari_summary_pairs,
+    greedy_evaluation_markdown,
     option_usage_markdown,
     run_atari_cell,
 )
@@ -88,6 +89,8 @@ def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: At
                                        condition=condition, baseline=baseline)
         text += atari_summary_markdown(comparisons, final_window=cfg.final_window,
                                        header=f"## {condition} vs {baseline}") + "\n"
+    pairs = atari_summary_pairs({r["condition"] for r in rows})
+    text += greedy_evaluation_markdown(out_dir, pairs, phase1_episodes=config.phase1_episodes)
     usage = option_usage_markdown(out_dir)
     if usage:
         text += "## Option usage in phase 3 (from the replay buffer)\n\n" + usage + "\n"

@@ -190,3 +190,29 @@ def test_optimizer_factory():
     assert isinstance(default.optimizer, torch.optim.Adam) and not default.optimizer.defaults.get("fused")
     with pytest.raises(TypeError, match="optimizer must make a torch.optim.Optimizer, got list"):
         OptionsDQN(corridor, config("actions"), optimizer=lambda params, lr: list(params))
+
+
+def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(tmp_path):
+    cfg = config("both", total_frames=512, learning_starts=8, batch_size=8, greedy_options=False)
+
+    def run(evaluate: bool) -> OptionsDQN:
+        agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+        agent.train(total_frames=256)
+        if evaluate:
+            mean = agent.record_evaluation(num_episodes=4, max_steps=MAX_STEPS)
+            assert agent.log.evaluations == [[len(agent.log.episode_returns), 256, mean, 4]]
+        agent.train(total_frames=256)
+        return agent
+
+    with_eval, without = run(True), run(False)
+    # the evaluation draws from a forked generator: training goes on exactly as without it
+    assert with_eval.log.losses == without.log.losses
+    assert with_eval.log.episode_returns == without.log.episode_returns
+    # the same games every time: evaluating twice in a row gives the same figure (options sample their actions)
+    assert with_eval.record_evaluation(4, MAX_STEPS) == with_eval.record_evaluation(4, MAX_STEPS)
+    with_eval.save(tmp_path / "ckpt.pt")
+    restored = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    restored.load(tmp_path / "ckpt.pt")
+    assert restored.log.evaluations == with_eval.log.evaluations and len(restored.log.evaluations) == 3
+    with pytest.raises(RuntimeError, match="max_steps"):
+        with_eval.record_evaluation(4, max_steps=2)  # no episode can finish in 2 steps

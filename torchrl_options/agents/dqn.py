@@ -121,6 +121,9 @@ class TrainingLog:
     episode_lengths: list[int] = field(default_factory=list)  # primitive steps
     episode_end_frames: list[int] = field(default_factory=list)  # total frames when the episode ended
     losses: list[float] = field(default_factory=list)
+    # one entry per :meth:`OptionsDQN.record_evaluation`: [training episodes so far, frames so far, mean greedy
+    # return, episodes evaluated]
+    evaluations: list[list[float]] = field(default_factory=list)
 
 
 def _count_executors(env: EnvBase) -> int:
@@ -369,6 +372,27 @@ class OptionsDQN:
         if data.ndim > 1:  # [*envs, T] -> [T, *envs]: episodes in the order they ended
             done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
         return returns[done][:num_episodes].tolist()
+
+    def record_evaluation(self, num_episodes: int = 10, max_steps: int = 1000) -> float:
+        """Runs :meth:`evaluate` and appends ``[episodes, frames, mean return, episodes evaluated]`` to
+        ``log.evaluations`` (saved with the checkpoints); returns the mean.
+
+        The evaluation draws its random numbers (option actions, no-op starts) from a forked generator, so that
+        training goes on exactly as it would have without it, also when called from a :meth:`train` callback; and
+        it reseeds its env the same way each time, so that evaluations of different agents (or of one agent at
+        different times) play the same games.
+
+        Raises:
+            RuntimeError: if no episode finished within ``max_steps`` (raise ``max_steps``).
+        """
+        devices = [self.device] if self.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            returns = self.evaluate(num_episodes=num_episodes, max_steps=max_steps)
+        if not returns:
+            raise RuntimeError(f"no evaluation episode finished within max_steps={max_steps}; raise max_steps.")
+        mean = float(sum(returns) / len(returns))
+        self.log.evaluations.append([len(self.log.episode_returns), self.frames, mean, len(returns)])
+        return mean
 
     # ---------------------------------------------------------- checkpoints
     def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:

@@ -49,6 +49,7 @@ __all__ = [
     "write_option_frames",
     "option_usage",
     "option_usage_markdown",
+    "greedy_evaluation_markdown",
     "atari_summary_pairs",
 ]
 
@@ -77,6 +78,12 @@ class AtariConfig:
     ``vector_env``, the fastest on few cores: see :func:`~torchrl_options.envs.atari.make_atari_ram_env`; the
     greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the
     same algorithm, several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
+
+    Greedy evaluation (off by default; the paper plots the mean return of rollouts of the learned policy): each
+    time a cell's episode count passes a multiple of ``eval_every``, ``eval_episodes`` episodes of the greedy
+    policy (options run as in training) on freshly seeded games, the same games for every condition and every
+    time (:meth:`~torchrl_options.agents.OptionsDQN.record_evaluation`); the cell's json file keeps them and
+    ``summary.md`` compares the conditions on them.
 
     With batched games, episodes end several at a time and a phase stops at the first collector batch that
     completes its count: phase 1 may then have run up to ``num_envs - 1`` episodes more than
@@ -121,6 +128,9 @@ class AtariConfig:
     vector_env: bool = False
     device: str = "cpu"
     fused_adam: bool = False
+    # greedy evaluation (the paper's measure): every eval_every episodes of a cell (0: off)
+    eval_every: int = 0
+    eval_episodes: int = 8
     # outputs
     checkpoint_every: int = 100
     checkpoint_buffer: bool = True
@@ -243,12 +253,27 @@ def _atomic_save(obj: Any, path: str) -> None:
     os.replace(tmp, path)
 
 
-def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig) -> None:
-    """Trains ``agent`` until its log holds ``num_episodes`` episodes, checkpointing every ``checkpoint_every``."""
+def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
+    """Greedy evaluation when the cell's episode count (``offset`` + the agent's) has passed a new multiple of
+    ``eval_every`` since the agent's last evaluation."""
+    if not config.eval_every:
+        return
+    done = offset + len(agent.log.episode_returns)
+    last = offset + int(agent.log.evaluations[-1][0]) if agent.log.evaluations else offset
+    if done // config.eval_every > last // config.eval_every:
+        batch = agent.env.batch_size.numel()
+        episodes_per_game = -(-config.eval_episodes // batch)
+        agent.record_evaluation(config.eval_episodes, episodes_per_game * (config.max_episode_steps or 27_000))
+
+
+def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig, offset: int = 0) -> None:
+    """Trains ``agent`` until its log holds ``num_episodes`` episodes, checkpointing every ``checkpoint_every``
+    and evaluating (see :func:`_evaluate_if_due`; ``offset``: the cell's episodes before this agent's)."""
     last = [len(agent.log.episode_returns)]
 
     def callback(agent, batch):
         n = len(agent.log.episode_returns)
+        _evaluate_if_due(agent, config, offset)
         if config.checkpoint_every and n - last[0] >= config.checkpoint_every:
             _atomic_save(agent.state_dict(), partial_path)
             last[0] = n
@@ -441,7 +466,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         # control: actions only from a reset Q-function, as H1 but without the options
         agent = _make_agent(game, config, seed + 1000, "actions")
         _load_if(agent, partial_path)
-        _train_episodes(agent, config.phase3_episodes, partial_path, config)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config, offset=n1)
         returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
         frames = p1_frames + [p1_total + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
         phase3 = {}
@@ -455,7 +480,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
             agent.warm_start_from(phase1_agent)
             copied = len(agent.replay_buffer)
         _load_if(agent, partial_path)
-        _train_episodes(agent, config.phase3_episodes, partial_path, config)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config, offset=n1)
         offset = p1_total + int(metadata["demo_frames"])
         returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
         frames = p1_frames + [offset + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
@@ -472,9 +497,22 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
     if os.path.exists(partial_path):
         os.remove(partial_path)
     info = {"seconds": time.time() - t0, "phase1_frames": p1_total, "demo_frames": metadata.get("demo_frames"), **phase3}
+    if config.eval_every:
+        info["evaluations"] = _cell_evaluations(cell.condition, phase1_agent, agent, n1, config.eval_every)
     with open(os.path.join(seed_dir, f"{cell.condition}.json"), "w") as f:
         json.dump(info, f)
     return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames], info=info)
+
+
+def _cell_evaluations(condition: str, phase1_agent, agent, n1: int, every: int) -> list[list[float]]:
+    """The cell's greedy evaluations as ``[point, episodes, mean return]``: ``point`` is the multiple of ``every``
+    that triggered it (comparable across conditions), ``episodes`` the cell's episode count then."""
+    if condition == "A":  # one agent through both phases
+        rows = [(e[0], e[2]) for e in agent.log.evaluations]
+    else:
+        rows = [(e[0], e[2]) for e in phase1_agent.log.evaluations if e[0] // every <= n1 // every]
+        rows += [(n1 + e[0], e[2]) for e in agent.log.evaluations]
+    return [[int(ep) // every * every, int(ep), float(mean)] for ep, mean in rows]
 
 
 def agent_for_frames(game: str, config: AtariConfig, seed: int, seed_dir: str):
@@ -709,6 +747,65 @@ def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
     """
     have = set(conditions)
     return [(c, b) for c, b in SUMMARY_PAIRS if c in have and b in have]
+
+
+def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *, phase1_episodes: int) -> str:
+    """Markdown tables comparing conditions on their greedy evaluations (``AtariConfig.eval_every``), read from
+    the finished cells' json files under ``out_dir``: per game and pair ``(condition, baseline)``, the mean over
+    the phase-3 evaluation points (after ``phase1_episodes``) of each seed, and the paired difference over the seeds
+    that ran both, with a 95% bootstrap interval. Empty when no cell was evaluated.
+
+    Examples:
+        >>> import json, os, tempfile
+        >>> out = tempfile.mkdtemp()
+        >>> for cond, value in (("A", 1.0), ("H1", 3.0)):
+        ...     os.makedirs(os.path.join(out, "Pooyan", "seed0"), exist_ok=True)
+        ...     evals = [[10, 10, 0.0], [20, 21, value], [30, 30, value]]
+        ...     with open(os.path.join(out, "Pooyan", "seed0", f"{cond}.json"), "w") as f:
+        ...         json.dump({"evaluations": evals}, f)
+        >>> print(greedy_evaluation_markdown(out, [("H1", "A")], phase1_episodes=10).splitlines()[-3])
+        | Pooyan | 1 | 2 | 1.00 [1.00, 1.00] | 3.00 [3.00, 3.00] | 2.00 [2.00, 2.00] | H1 |
+    """
+    import glob
+
+    evals: dict[tuple[str, str], dict[int, float]] = defaultdict(dict)  # (game, condition) -> seed -> mean
+    points: dict[tuple[str, str], int] = {}
+    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "*.json"))):
+        game, seed_dir = path.split(os.sep)[-3], path.split(os.sep)[-2]
+        condition = os.path.splitext(os.path.basename(path))[0]
+        with open(path) as f:
+            info = json.load(f)
+        phase3 = [e[2] for e in info.get("evaluations", []) if e[0] > phase1_episodes]
+        if phase3:
+            evals[(game, condition)][int(seed_dir[len("seed"):])] = float(np.mean(phase3))
+            points[(game, condition)] = len(phase3)
+    text = ""
+    for condition, baseline in pairs:
+        games = sorted({g for g, c in evals if c == condition} & {g for g, c in evals if c == baseline})
+        if not games:
+            continue
+        text += (
+            f"\n## Greedy evaluation: {condition} vs {baseline}\n\nMean return of the greedy policy (options run as in "
+            f"training) on the same freshly seeded games, averaged over the evaluations of phase 3, then over seeds "
+            f"(95% bootstrap intervals).\n\n"
+            f"| game | seeds | evaluations | {baseline} | {condition} | {condition} - {baseline} | better |\n"
+            "|---|---|---|---|---|---|---|\n"
+        )
+        ahead = 0
+        for game in games:
+            a, b = evals[(game, condition)], evals[(game, baseline)]
+            seeds = sorted(set(a) & set(b))
+            if not seeds:
+                continue
+            ci_b = bootstrap_ci([b[s] for s in seeds])
+            ci_a = bootstrap_ci([a[s] for s in seeds])
+            diff = bootstrap_ci([a[s] - b[s] for s in seeds])
+            ahead += diff[0] > 0
+            f = lambda x: f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"  # noqa: E731
+            text += (f"| {game} | {len(seeds)} | {points[(game, condition)]} | {f(ci_b)} | {f(ci_a)} | {f(diff)} | "
+                     f"{_verdict(diff, condition, baseline)} |\n")
+        text += f"\n`{condition}` ahead of `{baseline}` in greedy evaluation in {ahead} of {len(games)} games.\n"
+    return text
 
 
 def option_usage_markdown(out_dir: str) -> str:
