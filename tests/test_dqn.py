@@ -197,11 +197,13 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
 
     def run(evaluate: bool) -> OptionsDQN:
         agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
-        agent.train(total_frames=256)
-        if evaluate:
-            mean = agent.record_evaluation(num_episodes=4, max_steps=MAX_STEPS)
-            assert agent.log.evaluations == [[len(agent.log.episode_returns), 256, mean, 4]]
-        agent.train(total_frames=256)
+
+        def callback(agent, batch):  # evaluations between collector batches, as the Atari recipe does
+            if evaluate and agent.frames in (128, 320):
+                mean = agent.record_evaluation(num_episodes=4, max_steps=MAX_STEPS)
+                assert agent.log.evaluations[-1] == [len(agent.log.episode_returns), agent.frames, mean, 4]
+
+        agent.train(callback=callback)
         return agent
 
     with_eval, without = run(True), run(False)
@@ -213,6 +215,18 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
     with_eval.save(tmp_path / "ckpt.pt")
     restored = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
     restored.load(tmp_path / "ckpt.pt")
-    assert restored.log.evaluations == with_eval.log.evaluations and len(restored.log.evaluations) == 3
+    assert restored.log.evaluations == with_eval.log.evaluations and len(restored.log.evaluations) == 4
     with pytest.raises(RuntimeError, match="max_steps"):
         with_eval.record_evaluation(4, max_steps=2)  # no episode can finish in 2 steps
+    # with an env that draws from torch's global generator (random no-op starts), evaluate() moves it and
+    # record_evaluation() does not
+    from torchrl.envs import NoopResetEnv, TransformedEnv
+
+    noop_corridor = lambda: TransformedEnv(Corridor(LENGTH, max_steps=MAX_STEPS), NoopResetEnv(3, random=True))  # noqa
+    agent = OptionsDQN(noop_corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    state = torch.get_rng_state().clone()
+    agent.evaluate(2, MAX_STEPS)
+    assert not torch.equal(state, torch.get_rng_state())
+    state = torch.get_rng_state().clone()
+    agent.record_evaluation(2, MAX_STEPS)
+    assert torch.equal(state, torch.get_rng_state())

@@ -3,6 +3,7 @@ import csv
 import importlib.util
 import os
 
+import numpy as np
 import pytest
 import torch
 
@@ -218,3 +219,29 @@ def test_vector_env_cells(tmp_path):
     assert len(meta["demo_returns"]) == 2
     info = json.loads((tmp_path / "Pooyan" / "seed0" / "H1.json").read_text())
     assert 0.0 <= info["option_step_share"] <= 1.0
+
+
+def test_greedy_evaluation(tmp_path):
+    """``atari.eval_every``: greedy evaluations at the same episode counts in every condition, phase 1's shared,
+    kept in each cell's json file and compared in summary.md."""
+    import json
+
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0]",
+                   "atari.max_episode_steps=20", "atari.phase1_episodes=4", "atari.phase3_episodes=4",
+                   "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
+                   "atari.learning_starts=8", "atari.eval_every=2", "atari.eval_episodes=2"])
+    recipe.run(cfg)
+    seed_dir = tmp_path / "Pooyan" / "seed0"
+    evals = {c: json.loads((seed_dir / f"{c}.json").read_text())["evaluations"] for c in ("A", "H1", "A0")}
+    for c, e in evals.items():
+        assert [p for p, _, _ in e] == [2, 4, 6, 8], c  # one evaluation per multiple of eval_every, in order
+        assert all(ep >= p for p, ep, _ in e), c
+    assert evals["A"][:2] == evals["H1"][:2] == evals["A0"][:2]  # phase 1 is shared
+    summary = (tmp_path / "summary.md").read_text()
+    for header in ("## Greedy evaluation: H1 vs A", "## Greedy evaluation: A0 vs A", "## Greedy evaluation: H1 vs A0"):
+        assert header in summary
+    row = next(line for line in summary.splitlines() if line.startswith("| Pooyan | 1 | 2 |"))
+    h1 = np.mean([m for p, _, m in evals["H1"][2:]])
+    a = np.mean([m for p, _, m in evals["A"][2:]])
+    assert f"{h1 - a:.2f} [" in row
