@@ -203,7 +203,8 @@ def test_vector_env_cells(tmp_path):
     cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "atari.max_episode_steps=20",
                    "atari.phase1_episodes=4", "atari.phase3_episodes=4", "atari.num_demonstrations=2",
                    "atari.demo_max_steps=20", "atari.option_frames=false", "atari.learning_starts=8",
-                   "atari.num_envs=2", "atari.vector_env=true", "atari.frames_per_batch=20"])
+                   "atari.num_envs=2", "atari.vector_env=true", "atari.frames_per_batch=20",
+                   "atari.eval_every=2", "atari.eval_episodes=2"])
     assert sorted(c.condition for c in recipe.run(cfg)) == ["A", "H1"]
     rows = _rows(tmp_path / "results.csv")
     for cond in ("A", "H1"):
@@ -219,6 +220,7 @@ def test_vector_env_cells(tmp_path):
     assert len(meta["demo_returns"]) == 2
     info = json.loads((tmp_path / "Pooyan" / "seed0" / "H1.json").read_text())
     assert 0.0 <= info["option_step_share"] <= 1.0
+    assert [p for p, _, _ in info["evaluations"]] == [2, 4, 6, 8]  # greedy evaluations over the vector env too
 
 
 def test_greedy_evaluation(tmp_path):
