@@ -261,7 +261,7 @@ def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
     done = offset + len(agent.log.episode_returns)
     last = offset + int(agent.log.evaluations[-1][0]) if agent.log.evaluations else offset
     if done // config.eval_every > last // config.eval_every:
-        batch = agent.env.batch_size.numel()
+        batch = config.num_envs if config.vector_env else 1  # evaluate() plays one env from the factory
         episodes_per_game = -(-config.eval_episodes // batch)
         agent.record_evaluation(config.eval_episodes, episodes_per_game * (config.max_episode_steps or 27_000))
 
