@@ -84,12 +84,12 @@ def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: At
     generic per-condition table) and ``curves.png``."""
     rows = results.rows()  # read once for every pair
     text = f"# Atari RAM, preset `{cfg.preset_name}`\n\n"
-    for condition, baseline in atari_summary_pairs({r["condition"] for r in rows}):
+    pairs = atari_summary_pairs({r["condition"] for r in rows})
+    for condition, baseline in pairs:
         comparisons = atari_comparison(rows, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window,
                                        condition=condition, baseline=baseline)
         text += atari_summary_markdown(comparisons, final_window=cfg.final_window,
                                        header=f"## {condition} vs {baseline}") + "\n"
-    pairs = atari_summary_pairs({r["condition"] for r in rows})
     text += greedy_evaluation_markdown(out_dir, pairs, phase1_episodes=config.phase1_episodes)
     usage = option_usage_markdown(out_dir)
     if usage:

@@ -384,6 +384,16 @@ class OptionsDQN:
 
         Raises:
             RuntimeError: if no episode finished within ``max_steps`` (raise ``max_steps``).
+
+        Examples:
+            >>> from torchrl.envs import GymEnv
+            >>> from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
+            >>> config = OptionsDQNConfig(mode="actions", total_frames=128, frames_per_batch=64)
+            >>> agent = OptionsDQN(lambda: GymEnv("CartPole-v1", categorical_action_encoding=True), config)
+            >>> log = agent.train()
+            >>> mean = agent.record_evaluation(num_episodes=2, max_steps=500)
+            >>> agent.log.evaluations[-1][1:] == [128, mean, 2]
+            True
         """
         devices = [self.device] if self.device.type == "cuda" else []
         with torch.random.fork_rng(devices=devices):

@@ -234,8 +234,8 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         device=config.device,
     )
     return OptionsDQN(
-        _env_factory(game, config, seed, batched=True), dqn_config, options=options, num_options=num_options, q_network=q_net,
-        optimizer=partial(torch.optim.Adam, fused=True) if config.fused_adam else None,
+        _env_factory(game, config, seed, batched=True), dqn_config, options=options, num_options=num_options,
+        q_network=q_net, optimizer=partial(torch.optim.Adam, fused=True) if config.fused_adam else None,
     )
 
 
@@ -601,6 +601,24 @@ class AtariComparison:
     baseline: str = "A"
 
 
+def _ci_text(x: tuple[float, float, float]) -> str:
+    """``(mean, low, high)`` as ``"mean [low, high]"``."""
+    return f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"
+
+
+def _cell_infos(out_dir: str, pattern: str = "*") -> list[tuple[str, int, str, dict]]:
+    """``(game, seed, condition, info)`` of the finished cells' json files
+    ``<out_dir>/<game>/seed<s>/<pattern>.json``."""
+    import glob
+
+    infos = []
+    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", f"{pattern}.json"))):
+        parts = path.split(os.sep)
+        with open(path) as f:
+            infos.append((parts[-3], int(parts[-2][len("seed"):]), os.path.splitext(parts[-1])[0], json.load(f)))
+    return infos
+
+
 def _verdict(diff: tuple[float, float, float], condition: str = "options", baseline: str = "baseline") -> str:
     m, lo, hi = diff
     if lo > 0:
@@ -696,9 +714,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
     ``comparisons`` should share one ``(condition, baseline)`` pair (one call per pair); the table names them.
     """
 
-    def f(x):
-        return f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"
-
+    f = _ci_text
     c_name = comparisons[0].condition if comparisons else "H1"
     b_name = comparisons[0].baseline if comparisons else "A"
     what = {
@@ -766,18 +782,12 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
         >>> print(greedy_evaluation_markdown(out, [("H1", "A")], phase1_episodes=10).splitlines()[-3])
         | Pooyan | 1 | 2 | 1.00 [1.00, 1.00] | 3.00 [3.00, 3.00] | 2.00 [2.00, 2.00] | H1 |
     """
-    import glob
-
     evals: dict[tuple[str, str], dict[int, float]] = defaultdict(dict)  # (game, condition) -> seed -> mean
     points: dict[tuple[str, str], int] = {}
-    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "*.json"))):
-        game, seed_dir = path.split(os.sep)[-3], path.split(os.sep)[-2]
-        condition = os.path.splitext(os.path.basename(path))[0]
-        with open(path) as f:
-            info = json.load(f)
+    for game, seed, condition, info in _cell_infos(out_dir):
         phase3 = [e[2] for e in info.get("evaluations", []) if e[0] > phase1_episodes]
         if phase3:
-            evals[(game, condition)][int(seed_dir[len("seed"):])] = float(np.mean(phase3))
+            evals[(game, condition)][seed] = float(np.mean(phase3))
             points[(game, condition)] = len(phase3)
     text = ""
     for condition, baseline in pairs:
@@ -801,9 +811,8 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
             ci_a = bootstrap_ci([a[s] for s in seeds])
             diff = bootstrap_ci([a[s] - b[s] for s in seeds])
             ahead += diff[0] > 0
-            f = lambda x: f"{x[0]:.2f} [{x[1]:.2f}, {x[2]:.2f}]"  # noqa: E731
-            text += (f"| {game} | {len(seeds)} | {points[(game, condition)]} | {f(ci_b)} | {f(ci_a)} | {f(diff)} | "
-                     f"{_verdict(diff, condition, baseline)} |\n")
+            text += (f"| {game} | {len(seeds)} | {points[(game, condition)]} | {_ci_text(ci_b)} | {_ci_text(ci_a)} | "
+                     f"{_ci_text(diff)} | {_verdict(diff, condition, baseline)} |\n")
         text += f"\n`{condition}` ahead of `{baseline}` in greedy evaluation in {ahead} of {len(games)} games.\n"
     return text
 
@@ -822,13 +831,8 @@ def option_usage_markdown(out_dir: str) -> str:
         >>> print(option_usage_markdown(out).splitlines()[-1])
         | Pooyan | H1 | 1 | 0.50 | 0.80 | 4.0 |
     """
-    import glob
-
     usage: dict[tuple[str, str], list[dict]] = defaultdict(list)
-    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "H1*.json"))):
-        game, condition = path.split(os.sep)[-3], os.path.splitext(os.path.basename(path))[0]
-        with open(path) as f:
-            info = json.load(f)
+    for game, _, condition, info in _cell_infos(out_dir, "H1*"):
         if "option_decision_share" in info:
             usage[(game, condition)].append(info)
     if not usage:
