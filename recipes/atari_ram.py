@@ -10,6 +10,7 @@ Run:
     python recipes/atari_ram.py preset=gpu-hour game=Pooyan          # about an hour on a 16-core GPU machine
     python recipes/atari_ram.py preset=paper sweep.backend=ray sweep.ray_address=auto
     python recipes/atari_ram.py preset=cores16 "conditions=[A,H1,A0,H1w]"   # with the control and the warm start
+    python recipes/atari_ram.py preset=cpu-vec "conditions=[A,H1,H1g]"     # + options that act greedily
 
 Writes to ``out_dir``: ``results.csv`` (one row per episode and cell, re-runs skip finished cells),
 ``summary.md``, ``curves.png``, ``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.

@@ -157,17 +157,17 @@ def test_smoke_all_five_games(tmp_path):
 
 
 def test_control_and_warm_start_conditions(tmp_path):
-    """A0 (actions, Q reset) and H1w (options added to phase 1's DQN) beside the paper's A and H1: all four share
-    phases 1 and 2, and the summary reports each pair and the option usage."""
+    """A0 (actions, Q reset), H1w (options added to phase 1's DQN) and H1g (greedy options) beside the paper's A
+    and H1: all five share phases 1 and 2, and the summary reports each pair and the option usage."""
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w]",
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w,H1g]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8"])
     ran = recipe.run(cfg)
-    assert sorted(c.condition for c in ran) == ["A", "A0", "H1", "H1w"]
+    assert sorted(c.condition for c in ran) == ["A", "A0", "H1", "H1g", "H1w"]
     rows = _rows(tmp_path / "results.csv")
-    by = {c: [r for r in rows if r["condition"] == c] for c in ("A", "H1", "A0", "H1w")}
+    by = {c: [r for r in rows if r["condition"] == c] for c in ("A", "H1", "A0", "H1w", "H1g")}
     p1 = cfg.atari.phase1_episodes
     for c, r in by.items():
         assert len(r) == p1 + cfg.atari.phase3_episodes, c
@@ -180,15 +180,41 @@ def test_control_and_warm_start_conditions(tmp_path):
     p1_end = int(by["A"][p1 - 1]["frames"])
     first_len = lambda c: int(by[c][p1]["frames"]) - p1_end  # noqa: E731
     assert first_len("A0") <= cfg.atari.max_episode_steps
-    assert first_len("H1w") > demo_frames and first_len("H1") > demo_frames
-    for c in ("H1", "H1w"):
+    assert first_len("H1w") > demo_frames and first_len("H1") > demo_frames and first_len("H1g") > demo_frames
+    for c in ("H1", "H1w", "H1g"):
         info = json.loads((seed_dir / f"{c}.json").read_text())
         assert 0.0 <= info["option_decision_share"] <= 1.0 and 0.0 <= info["option_step_share"] <= 1.0
     summary = (tmp_path / "summary.md").read_text()
-    for header in ("## H1 vs A", "## H1w vs A", "## A0 vs A", "## H1 vs A0", "## Option usage in phase 3"):
+    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs H1",
+                   "## Option usage in phase 3"):
         assert header in summary
+    assert "| Pooyan | H1g | 1 |" in summary  # H1g's option usage
     comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
     assert comparison[0].condition == "H1w" and comparison[0].baseline == "A" and comparison[0].num_seeds == 1
+
+
+def test_greedy_options_condition_acts_by_argmax():
+    """H1g's agent runs each option with the argmax of its control policy at every step; H1's samples from it."""
+    from torchrl_options.modules import OptionsMLP
+    from torchrl_options.transforms import OptionExecutor
+
+    config = AtariConfig(max_episode_steps=40, hidden_sizes=(8, 8, 8))
+    agent = _make_agent("Pooyan", config, 0, "actions")
+    n = int(agent.env.action_spec.n)
+    torch.manual_seed(0)
+    options = OptionsMLP(128, n, 2, num_cells=[8])  # untrained: far from deterministic
+    for greedy in (False, True):
+        agent = _make_agent("Pooyan", config, 0, "both", options=options, num_options=2, greedy_options=greedy)
+        executor = next(t for t in agent.env.transform if isinstance(t, OptionExecutor))
+        assert executor.greedy is greedy
+        agent.env.set_seed(0)
+        # every decision starts option 0, so option 0 chooses every primitive action of the rollout
+        data = agent.env.rollout(40, policy=lambda td: td.set("action", torch.tensor(n)))
+        assert (data["next", "executed_option"] == 0).all()
+        with torch.no_grad():
+            argmax = options(data.select("observation").clone())["option_logits"][..., 0, :].argmax(-1)
+        same = data["next", "executed_action"].reshape(-1) == argmax.reshape(-1)
+        assert same.all() if greedy else not same.all(), greedy
 
 
 def test_vector_env_cells(tmp_path):

@@ -5,18 +5,21 @@ actions for N episodes; 100 greedy trajectories of that DQN; DDO with K options 
 and options from a reset Q-function, against the baseline that continues the first DQN with actions only.
 
 A cell is ``(game, condition, seed)``. The conditions: ``"A"``, the baseline (phase 1's DQN continued with actions
-only); ``"H1"``, the paper's (actions + options, Q-function reset); and two that the paper does not run:
-``"A0"``, a control (actions only, Q-function reset: what the reset alone costs) and ``"H1w"``, options added
-to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`). The paper's
-comparison is ``H1`` against ``A``. The conditions of a seed share phases 1 and 2, cached in
-``<out>/<game>/seed<s>/`` (a file lock makes later cells wait for, then reuse, the first one's phase-1 checkpoint
-and options). Every phase checkpoints at its end and every ``checkpoint_every`` episodes, and resumes from there.
+only); ``"H1"``, the paper's (actions + options, Q-function reset); and three that the paper does not run:
+``"A0"``, a control (actions only, Q-function reset: what the reset alone costs); ``"H1w"``, options added
+to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`); and ``"H1g"``, as
+``H1`` but each option acts with the argmax of its control policy instead of sampling from it. (DDO fits
+stochastic policies to a deterministic demonstrator, the greedy phase-1 DQN; a short fit leaves them far from
+deterministic, so a sampled option also explores, where the paper's argument is that options carry the
+demonstrator's behaviour uninterrupted by exploration.) The paper's comparison is ``H1`` against ``A``.
+The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes later cells
+wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and every ``checkpoint_every`` episodes, and resumes from there.
 
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
 ``frames`` is the cumulative number of env steps (agent steps; ``frame_skip`` emulator frames each) at the end of
-each episode, counted from the start of phase 1; for ``H1`` and ``H1w`` it includes the frames of the greedy
-demonstrations of phase 2, which the baseline does not spend.
+each episode, counted from the start of phase 1; for ``H1``, ``H1w`` and ``H1g`` it includes the frames of the
+greedy demonstrations of phase 2, which the baseline does not spend.
 """
 from __future__ import annotations
 
@@ -55,7 +58,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-CONDITIONS = ("A", "H1", "H1w", "A0")
+CONDITIONS = ("A", "H1", "H1w", "A0", "H1g")
 
 
 @dataclass
@@ -203,7 +206,8 @@ def _num_actions(game: str, config: AtariConfig) -> int:
     return int(n)
 
 
-def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=None, num_options=None):
+def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=None, num_options=None,
+                greedy_options: bool = False):
     from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
     from torchrl_options.envs.atari import ram_q_network
 
@@ -229,7 +233,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         eps_annealing_frames=max(int(config.eps_annealing_frames), 1),
         hard_update_interval=config.hard_update_interval,
         double_dqn=config.double_dqn,
-        greedy_options=False,
+        greedy_options=greedy_options,
         seed=seed,
         device=config.device,
     )
@@ -426,7 +430,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
 
     Args:
         cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of ``"A"``, ``"H1"``, ``"H1w"``,
-            ``"A0"`` (see the module docstring).
+            ``"A0"``, ``"H1g"`` (see the module docstring).
 
     Keyword Args:
         config (AtariConfig or dict): the settings.
@@ -472,7 +476,8 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         phase3 = {}
     else:
         k = metadata["num_options"]
-        agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k)
+        agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k,
+                            greedy_options=cell.condition == "H1g")
         copied = 0
         if cell.condition == "H1w":
             # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
@@ -720,6 +725,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
     what = {
         "H1": "DQN over actions + DDO options from a reset Q-function",
         "H1w": "DQN over actions + DDO options, started from phase 1's DQN (output layer widened, replay kept)",
+        "H1g": "as H1, each option acting with the argmax of its control policy",
         "A0": "DQN over actions only from a reset Q-function",
         "A": "the phase-1 DQN continued with actions only",
     }
@@ -751,7 +757,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
 
 
 #: the pairs that :func:`atari_summary_pairs` reports, when both conditions ran: the paper's comparison first
-SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("A0", "A"), ("H1", "A0"))
+SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "H1"))
 
 
 def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
@@ -818,7 +824,7 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
 
 
 def option_usage_markdown(out_dir: str) -> str:
-    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w`` cells under ``out_dir``
+    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w``/``H1g`` cells under ``out_dir``
     (mean over seeds of :func:`option_usage`); empty when there is none.
 
     Examples:
