@@ -94,7 +94,7 @@ def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: At
     text += greedy_evaluation_markdown(out_dir, pairs, phase1_episodes=config.phase1_episodes)
     usage = option_usage_markdown(out_dir)
     if usage:
-        text += "## Option usage in phase 3 (from the replay buffer)\n\n" + usage + "\n"
+        text += "\n## Option usage in phase 3 (from the replay buffer)\n\n" + usage + "\n"
     text += (
         f"\nBudget per cell: {config.phase1_episodes} phase-1 episodes (shared), {config.num_demonstrations} "
         f"greedy trajectories, DDO {config.ddo_iterations} iterations, {config.phase3_episodes} phase-3 episodes; "
