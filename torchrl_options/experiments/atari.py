@@ -13,7 +13,8 @@ stochastic policies to a deterministic demonstrator, the greedy phase-1 DQN; a s
 deterministic, so a sampled option also explores, where the paper's argument is that options carry the
 demonstrator's behaviour uninterrupted by exploration.) The paper's comparison is ``H1`` against ``A``.
 The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes later cells
-wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and every ``checkpoint_every`` episodes, and resumes from there.
+wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and
+every ``checkpoint_every`` episodes, and resumes from there.
 
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
