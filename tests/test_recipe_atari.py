@@ -185,7 +185,7 @@ def test_control_and_warm_start_conditions(tmp_path):
         info = json.loads((seed_dir / f"{c}.json").read_text())
         assert 0.0 <= info["option_decision_share"] <= 1.0 and 0.0 <= info["option_step_share"] <= 1.0
     summary = (tmp_path / "summary.md").read_text()
-    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs H1",
+    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs A0", "## H1g vs H1",
                    "## Option usage in phase 3"):
         assert header in summary
     assert "| Pooyan | H1g | 1 |" in summary  # H1g's option usage

@@ -758,7 +758,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
 
 
 #: the pairs that :func:`atari_summary_pairs` reports, when both conditions ran: the paper's comparison first
-SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "H1"))
+SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "A0"), ("H1g", "H1"))
 
 
 def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
