@@ -9,7 +9,13 @@ import torch
 
 from torchrl_options.envs.atari import ATARI_GAMES, atari_available
 from torchrl_options.experiments import ResultsLog
-from torchrl_options.experiments.atari import AtariConfig, _make_agent, _train_episodes, atari_comparison
+from torchrl_options.experiments.atari import (
+    AtariConfig,
+    _make_agent,
+    _num_actions,
+    _train_episodes,
+    atari_comparison,
+)
 
 pytestmark = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
 
@@ -185,8 +191,8 @@ def test_control_and_warm_start_conditions(tmp_path):
         info = json.loads((seed_dir / f"{c}.json").read_text())
         assert 0.0 <= info["option_decision_share"] <= 1.0 and 0.0 <= info["option_step_share"] <= 1.0
     summary = (tmp_path / "summary.md").read_text()
-    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs A0", "## H1g vs H1",
-                   "## Option usage in phase 3"):
+    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs A0",
+                   "## H1g vs H1", "## Option usage in phase 3"):
         assert header in summary
     assert "| Pooyan | H1g | 1 |" in summary  # H1g's option usage
     comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
@@ -199,8 +205,7 @@ def test_greedy_options_condition_acts_by_argmax():
     from torchrl_options.transforms import OptionExecutor
 
     config = AtariConfig(max_episode_steps=40, hidden_sizes=(8, 8, 8))
-    agent = _make_agent("Pooyan", config, 0, "actions")
-    n = int(agent.env.action_spec.n)
+    n = _num_actions("Pooyan", config)
     torch.manual_seed(0)
     options = OptionsMLP(128, n, 2, num_cells=[8])  # untrained: far from deterministic
     for greedy in (False, True):
