@@ -230,3 +230,67 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
     state = torch.get_rng_state().clone()
     agent.record_evaluation(2, MAX_STEPS)
     assert torch.equal(state, torch.get_rng_state())
+
+
+def test_intra_option_actions_buffer_holds_every_option_step():
+    """With ``intra_option_actions`` the buffer holds the same decisions as without, plus one one-step transition of
+    the executed primitive action per step an option controlled (no gradient step: both agents act alike)."""
+    counts = []
+
+    def count(agent, batch):
+        counts.append(int((batch["next", "executed_option"] >= 0).sum()))
+
+    buffers = []
+    for intra in (False, True):
+        cfg = config("both", total_frames=640, learning_starts=10**9, greedy_options=False, intra_option_actions=intra,
+                     eps_annealing_frames=10**6)
+        agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+        agent.train(callback=count if intra else None)
+        buffers.append(agent.replay_buffer[: len(agent.replay_buffer)].exclude("index"))
+    plain, with_intra = buffers
+    intra = with_intra["intra_option"].reshape(-1)
+    assert "intra_option" not in plain.keys()
+    decisions = with_intra[~intra].exclude("intra_option")
+    assert decisions.shape == plain.shape
+    for key in ("observation", "action", "steps_to_next_obs", ("next", "observation"), ("next", "reward")):
+        torch.testing.assert_close(decisions[key], plain[key])
+    steps = with_intra[intra]
+    assert steps.shape[0] == sum(counts) > 0
+    assert (steps["action"] < 2).all() and (steps["steps_to_next_obs"] == 1).all()
+    assert (steps["action"] == steps["next", "received_action"]).all()  # the action the corridor received
+
+
+def test_intra_option_actions_learn_primitive_values():
+    """The agent only ever runs option 0 (go right), so its primitive actions are never decided: their values are
+    learned from the steps inside the option with ``intra_option_actions``, and not at all without it."""
+    length = 6
+
+    def make():
+        return Corridor(length, max_steps=10, batch_size=[4])
+
+    learned = {}
+    for intra in (False, True):
+        net = torch.nn.Linear(length, 4, bias=False)  # one weight per (cell, augmented action)
+        with torch.no_grad():
+            net.weight.zero_()
+            net.weight[2] = 100.0  # Q(s, option 0) = 100 everywhere: the greedy policy always starts option 0
+        cfg = config("both", total_frames=500, frames_per_batch=20, updates_per_batch=4, learning_starts=8,
+                     batch_size=16, lr=0.02, eps_init=0.0, eps_end=0.0, hard_update_interval=10**6,
+                     intra_option_actions=intra)
+        agent = OptionsDQN(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
+        agent.train()
+        buf = agent.replay_buffer[: len(agent.replay_buffer)]
+        decided = buf["action"] if not intra else buf["action"][~buf["intra_option"].reshape(-1)]
+        assert (decided == 2).all()  # only option 0 was ever chosen
+        learned[intra] = net.weight.detach().clone()
+    # without: the primitive rows got no gradient; with: Q(cell 4, right) -> 1, the reward of the terminal step
+    assert (learned[False][:2] == 0).all()
+    assert abs(float(learned[True][1, length - 2]) - 1.0) < 0.1
+    assert (learned[True][0] == 0).all()  # "left" is never taken, inside an option or not
+
+
+def test_intra_option_actions_errors():
+    for mode in ("actions", "options"):
+        kwargs = {} if mode == "actions" else dict(options=go_right_options(LENGTH), num_options=2)
+        with pytest.raises(ValueError, match="intra_option_actions=True needs mode='both'"):
+            OptionsDQN(corridor, config(mode, intra_option_actions=True), **kwargs)

@@ -11,10 +11,12 @@ from torchrl_options.envs.atari import ATARI_GAMES, atari_available
 from torchrl_options.experiments import ResultsLog
 from torchrl_options.experiments.atari import (
     AtariConfig,
+    _close,
     _make_agent,
     _num_actions,
     _train_episodes,
     atari_comparison,
+    option_usage,
 )
 
 pytestmark = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
@@ -163,17 +165,18 @@ def test_smoke_all_five_games(tmp_path):
 
 
 def test_control_and_warm_start_conditions(tmp_path):
-    """A0 (actions, Q reset), H1w (options added to phase 1's DQN) and H1g (greedy options) beside the paper's A
-    and H1: all five share phases 1 and 2, and the summary reports each pair and the option usage."""
+    """A0 (actions, Q reset), H1w (options added to phase 1's DQN), H1g (greedy options) and H1i (primitive values
+    also learned inside options) beside the paper's A and H1: all six share phases 1 and 2, and the summary reports
+    each pair and the option usage."""
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w,H1g]",
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w,H1g,H1i]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8"])
     ran = recipe.run(cfg)
-    assert sorted(c.condition for c in ran) == ["A", "A0", "H1", "H1g", "H1w"]
+    assert sorted(c.condition for c in ran) == ["A", "A0", "H1", "H1g", "H1i", "H1w"]
     rows = _rows(tmp_path / "results.csv")
-    by = {c: [r for r in rows if r["condition"] == c] for c in ("A", "H1", "A0", "H1w", "H1g")}
+    by = {c: [r for r in rows if r["condition"] == c] for c in ("A", "H1", "A0", "H1w", "H1g", "H1i")}
     p1 = cfg.atari.phase1_episodes
     for c, r in by.items():
         assert len(r) == p1 + cfg.atari.phase3_episodes, c
@@ -186,17 +189,42 @@ def test_control_and_warm_start_conditions(tmp_path):
     p1_end = int(by["A"][p1 - 1]["frames"])
     first_len = lambda c: int(by[c][p1]["frames"]) - p1_end  # noqa: E731
     assert first_len("A0") <= cfg.atari.max_episode_steps
-    assert first_len("H1w") > demo_frames and first_len("H1") > demo_frames and first_len("H1g") > demo_frames
-    for c in ("H1", "H1w", "H1g"):
+    assert all(first_len(c) > demo_frames for c in ("H1", "H1w", "H1g", "H1i"))
+    for c in ("H1", "H1w", "H1g", "H1i"):
         info = json.loads((seed_dir / f"{c}.json").read_text())
         assert 0.0 <= info["option_decision_share"] <= 1.0 and 0.0 <= info["option_step_share"] <= 1.0
     summary = (tmp_path / "summary.md").read_text()
-    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## A0 vs A", "## H1 vs A0", "## H1g vs A0",
-                   "## H1g vs H1", "## Option usage in phase 3"):
+    for header in ("## H1 vs A", "## H1w vs A", "## H1g vs A", "## H1i vs A", "## A0 vs A", "## H1 vs A0",
+                   "## H1g vs A0", "## H1i vs A0", "## H1g vs H1", "## H1i vs H1", "## Option usage in phase 3"):
         assert header in summary
-    assert "| Pooyan | H1g | 1 |" in summary  # H1g's option usage
+    assert "| Pooyan | H1g | 1 |" in summary and "| Pooyan | H1i | 1 |" in summary  # their option usage
     comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
     assert comparison[0].condition == "H1w" and comparison[0].baseline == "A" and comparison[0].num_seeds == 1
+
+
+def test_intra_option_condition_and_its_option_usage():
+    """H1i's agent stores the steps inside options as one-step primitive transitions; ``option_usage`` counts the
+    decisions only, so H1i's figures compare with H1's."""
+    from torchrl_options.modules import OptionsMLP
+
+    config = AtariConfig(max_episode_steps=40, hidden_sizes=(8, 8, 8), frames_per_batch=40, learning_starts=10**9)
+    n = _num_actions("Pooyan", config)
+    torch.manual_seed(0)
+    options = OptionsMLP(128, n, 2, num_cells=[8])
+    agent = _make_agent("Pooyan", config, 0, "both", options=options, num_options=2, intra_option_actions=True)
+    assert agent.config.intra_option_actions
+    agent.train(total_frames=200)
+    buf = agent.replay_buffer[: len(agent.replay_buffer)]
+    intra = buf["intra_option"].reshape(-1)
+    decisions = buf[~intra]
+    option_steps = int(decisions["steps_to_next_obs"][decisions["action"] >= n].sum())
+    assert 0 < option_steps <= int(intra.sum())  # (plus the steps of option runs still pending)
+    assert (buf["action"][intra] < n).all()
+    usage = option_usage(agent, n)
+    is_option = decisions["action"] >= n
+    assert usage["option_decision_share"] == pytest.approx(float(is_option.float().mean()))
+    assert usage["option_step_share"] == pytest.approx(option_steps / float(decisions["steps_to_next_obs"].sum()))
+    _close(agent)
 
 
 def test_greedy_options_condition_acts_by_argmax():

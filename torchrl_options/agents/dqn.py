@@ -36,6 +36,7 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
+from torchrl_options.data.intra_option import intra_option_transitions
 from torchrl_options.data.smdp import SMDPTransitions
 from torchrl_options.transforms.decision_counter import DecisionCounter
 from torchrl_options.transforms.option_executor import OptionExecutor
@@ -74,6 +75,11 @@ class OptionsDQNConfig:
         loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"``.
         max_grad_norm: gradient clipping (``None`` to disable).
         greedy_options: options act greedily instead of sampling their action.
+        intra_option_actions: also learn the primitive actions' values from the steps that options take: each
+            such step goes to the replay buffer as a one-step transition of the primitive action executed
+            (:func:`~torchrl_options.data.intra_option_transitions`; intra-option learning, Sutton, Precup and
+            Singh, 1999), next to the decision-level transitions, with ``"intra_option"`` set to ``True``
+            (``False`` on decisions). Needs ``mode="both"`` over an env's own actions (a level-1 executor).
         max_decisions: if set, episodes are limited in decisions rather than primitive steps: a
             :class:`~torchrl_options.transforms.DecisionCounter` after the executor truncates an episode once its
             ``max_decisions``-th decision (a primitive action, or an option run to termination) is over. The
@@ -107,6 +113,7 @@ class OptionsDQNConfig:
     loss_function: str = "l2"
     max_grad_norm: float | None = 10.0
     greedy_options: bool = False
+    intra_option_actions: bool = False
     max_decisions: int | None = None
     observation_key: NestedKey = "observation"
     seed: int = 0
@@ -193,6 +200,7 @@ class OptionsDQN:
         if config.mode != "actions" and (options is None or num_options is None):
             raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
         torch.manual_seed(config.seed)
+        self._executor_level = 0
         self.env_factory = env_factory
         self.options = options
         self.num_options = num_options
@@ -200,6 +208,12 @@ class OptionsDQN:
         self.env = self.make_env()
 
         spec = self.env.full_action_spec_unbatched["action"]
+        if config.intra_option_actions and (config.mode != "both" or self._executor_level != 1):
+            raise ValueError(
+                "intra_option_actions=True needs mode='both' over an env's own primitive actions (a level-1 "
+                f"executor), got mode={config.mode!r} with an executor at level {self._executor_level}."
+            )
+        self._num_primitive = int(spec.n) - (num_options or 0) if config.mode == "both" else None
         if q_network is None:
             obs_dim = self.env.observation_spec[config.observation_key].shape[-1]
             q_network = MLP(in_features=obs_dim, out_features=spec.n, num_cells=list(config.hidden_sizes))
@@ -248,13 +262,14 @@ class OptionsDQN:
             env = batched(config.num_envs, self.env_factory)
         if config.mode != "actions":
             # over an env that already runs options (a lower level of a hierarchy), these options are one level up
+            self._executor_level = 1 + _count_executors(env)
             env = env.append_transform(
                 OptionExecutor(
                     self.options,
                     num_options=self.num_options,
                     primitive_actions=config.mode == "both",
                     greedy=config.greedy_options,
-                    level=1 + _count_executors(env),
+                    level=self._executor_level,
                 )
             )
         if config.max_decisions is not None:
@@ -301,6 +316,8 @@ class OptionsDQN:
             for batch in collector:
                 self._record_episodes(batch)
                 decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
+                if config.intra_option_actions:
+                    decisions = self._with_intra_option_steps(decisions, batch)
                 if decisions.shape[0]:
                     self.replay_buffer.extend(decisions)
                 self.frames += batch.numel()
@@ -314,6 +331,12 @@ class OptionsDQN:
         finally:
             collector.shutdown(close_env=False)
         return self.log
+
+    def _with_intra_option_steps(self, decisions: TensorDictBase, batch: TensorDictBase) -> TensorDictBase:
+        steps = intra_option_transitions(batch, num_actions=self._num_primitive)
+        decisions.set("intra_option", torch.zeros(decisions.shape, dtype=torch.bool, device=decisions.device))
+        steps.set("intra_option", torch.ones(steps.shape, dtype=torch.bool, device=steps.device))
+        return torch.cat([decisions, steps.to(decisions.device)], 0)
 
     def _update(self) -> None:
         sample = self.replay_buffer.sample().to(self.device)
@@ -488,6 +511,8 @@ class OptionsDQN:
         self.loss_module.load_state_dict(state)
         if copy_buffer and len(source.replay_buffer):
             data = source.replay_buffer[: len(source.replay_buffer)].exclude("index")
+            if self.config.intra_option_actions:  # the copied transitions are decisions
+                data.set("intra_option", torch.zeros(data.shape, dtype=torch.bool, device=data.device))
             self.replay_buffer.extend(widen_action_values(data.to(self.device), n_self))
         return self
 

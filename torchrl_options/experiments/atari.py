@@ -5,13 +5,16 @@ actions for N episodes; 100 greedy trajectories of that DQN; DDO with K options 
 and options from a reset Q-function, against the baseline that continues the first DQN with actions only.
 
 A cell is ``(game, condition, seed)``. The conditions: ``"A"``, the baseline (phase 1's DQN continued with actions
-only); ``"H1"``, the paper's (actions + options, Q-function reset); and three that the paper does not run:
+only); ``"H1"``, the paper's (actions + options, Q-function reset); and four that the paper does not run:
 ``"A0"``, a control (actions only, Q-function reset: what the reset alone costs); ``"H1w"``, options added
-to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`); and ``"H1g"``, as
+to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`); ``"H1g"``, as
 ``H1`` but each option acts with the argmax of its control policy instead of sampling from it. (DDO fits
 stochastic policies to a deterministic demonstrator, the greedy phase-1 DQN; a short fit leaves them far from
 deterministic, so a sampled option also explores, where the paper's argument is that options carry the
-demonstrator's behaviour uninterrupted by exploration.) The paper's comparison is ``H1`` against ``A``.
+demonstrator's behaviour uninterrupted by exploration.) And ``"H1i"``, as ``H1`` but the Q-function also learns
+its primitive actions' values from the steps that options take (``OptionsDQNConfig.intra_option_actions``): under
+``H1`` the steps inside options, often half of all steps, teach the primitive actions nothing, where ``A0`` learns
+from every step. The paper's comparison is ``H1`` against ``A``.
 The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes later cells
 wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and
 every ``checkpoint_every`` episodes, and resumes from there.
@@ -19,7 +22,7 @@ every ``checkpoint_every`` episodes, and resumes from there.
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
 ``frames`` is the cumulative number of env steps (agent steps; ``frame_skip`` emulator frames each) at the end of
-each episode, counted from the start of phase 1; for ``H1``, ``H1w`` and ``H1g`` it includes the frames of the
+each episode, counted from the start of phase 1; for ``H1``, ``H1w``, ``H1g`` and ``H1i`` it includes the frames of the
 greedy demonstrations of phase 2, which the baseline does not spend.
 """
 from __future__ import annotations
@@ -59,7 +62,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-CONDITIONS = ("A", "H1", "H1w", "A0", "H1g")
+CONDITIONS = ("A", "H1", "H1w", "A0", "H1g", "H1i")
 
 
 @dataclass
@@ -208,7 +211,7 @@ def _num_actions(game: str, config: AtariConfig) -> int:
 
 
 def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=None, num_options=None,
-                greedy_options: bool = False):
+                greedy_options: bool = False, intra_option_actions: bool = False):
     from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
     from torchrl_options.envs.atari import ram_q_network
 
@@ -235,6 +238,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         hard_update_interval=config.hard_update_interval,
         double_dqn=config.double_dqn,
         greedy_options=greedy_options,
+        intra_option_actions=intra_option_actions,
         seed=seed,
         device=config.device,
     )
@@ -396,7 +400,9 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
     """How much an agent over actions + options used its options, from the decisions in its replay buffer.
 
     Reads the decisions stored from position ``start`` on (to skip decisions copied in by a warm start), up to
-    the buffer's capacity. A decision is an option when its action index is ``num_actions`` or more.
+    the buffer's capacity, leaving out the one-step transitions of steps inside options (``"intra_option"``, with
+    ``OptionsDQNConfig.intra_option_actions``). A decision is an option when its action index is ``num_actions`` or
+    more.
 
     Returns:
         ``option_decision_share`` (fraction of decisions that started an option), ``option_step_share``
@@ -416,6 +422,8 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
     if n <= start:
         return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
     data = agent.replay_buffer[start:n]
+    if "intra_option" in data.keys():
+        data = data[~data.get("intra_option").reshape(-1)]
     is_option = data.get("action").reshape(-1) >= num_actions
     steps = data.get("steps_to_next_obs").reshape(-1).float()
     option_steps = steps[is_option]
@@ -431,7 +439,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
 
     Args:
         cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of ``"A"``, ``"H1"``, ``"H1w"``,
-            ``"A0"``, ``"H1g"`` (see the module docstring).
+            ``"A0"``, ``"H1g"``, ``"H1i"`` (see the module docstring).
 
     Keyword Args:
         config (AtariConfig or dict): the settings.
@@ -478,7 +486,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
     else:
         k = metadata["num_options"]
         agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k,
-                            greedy_options=cell.condition == "H1g")
+                            greedy_options=cell.condition == "H1g", intra_option_actions=cell.condition == "H1i")
         copied = 0
         if cell.condition == "H1w":
             # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
@@ -727,6 +735,7 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
         "H1": "DQN over actions + DDO options from a reset Q-function",
         "H1w": "DQN over actions + DDO options, started from phase 1's DQN (output layer widened, replay kept)",
         "H1g": "as H1, each option acting with the argmax of its control policy",
+        "H1i": "as H1, the primitive actions' values also learned from the steps options take",
         "A0": "DQN over actions only from a reset Q-function",
         "A": "the phase-1 DQN continued with actions only",
     }
@@ -758,7 +767,10 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
 
 
 #: the pairs that :func:`atari_summary_pairs` reports, when both conditions ran: the paper's comparison first
-SUMMARY_PAIRS = (("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "A0"), ("H1g", "H1"))
+SUMMARY_PAIRS = (
+    ("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("H1i", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "A0"), ("H1i", "A0"),
+    ("H1g", "H1"), ("H1i", "H1"),
+)
 
 
 def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
@@ -825,7 +837,7 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
 
 
 def option_usage_markdown(out_dir: str) -> str:
-    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w``/``H1g`` cells under ``out_dir``
+    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w``/``H1g``/``H1i`` cells under ``out_dir``
     (mean over seeds of :func:`option_usage`); empty when there is none.
 
     Examples:
