@@ -61,6 +61,9 @@ def test_presets_compose():
     assert [c.condition for c in four] == ["A", "H1", "A0", "H1w"]
     with pytest.raises(ValueError, match="conditions must be a non-empty list of .*got \\['A', 'H2'\\]"):
         recipe.sweep_cells(_config(["atari_preset=smoke", "conditions=[A,H2]"]))
+    for bad in ("H1iw", "H1gg", "H1x", "A1"):  # the letters after H1 come once each, in the order w, g, i
+        with pytest.raises(ValueError, match=f"conditions must be .*got \\['{bad}'\\]"):
+            recipe.sweep_cells(_config(["atari_preset=smoke", f"conditions=[{bad}]"]))
 
 
 def test_smoke_end_to_end_and_resume(tmp_path):
@@ -200,6 +203,21 @@ def test_control_and_warm_start_conditions(tmp_path):
     assert "| Pooyan | H1g | 1 |" in summary and "| Pooyan | H1i | 1 |" in summary  # their option usage
     comparison = atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1, condition="H1w")
     assert comparison[0].condition == "H1w" and comparison[0].baseline == "A" and comparison[0].num_seeds == 1
+
+
+def test_combined_conditions(tmp_path):
+    """``H1wi``: the warm start with intra-option transitions; the summary compares it with A, H1w and H1."""
+    recipe = _recipe()
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,H1w,H1wi]",
+                   "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
+                   "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
+                   "atari.learning_starts=8"])
+    assert sorted(c.condition for c in recipe.run(cfg)) == ["A", "H1", "H1w", "H1wi"]
+    summary = (tmp_path / "summary.md").read_text()
+    for header in ("## H1wi vs A", "## H1wi vs H1w", "## H1wi vs H1", "## H1w vs H1"):
+        assert header in summary
+    assert "## H1wi vs A0" not in summary and "started from phase 1's DQN" in summary
+    assert "| Pooyan | H1wi | 1 |" in summary
 
 
 def test_intra_option_condition_and_its_option_usage():

@@ -14,7 +14,9 @@ deterministic, so a sampled option also explores, where the paper's argument is 
 demonstrator's behaviour uninterrupted by exploration.) And ``"H1i"``, as ``H1`` but the Q-function also learns
 its primitive actions' values from the steps that options take (``OptionsDQNConfig.intra_option_actions``): under
 ``H1`` the steps inside options, often half of all steps, teach the primitive actions nothing, where ``A0`` learns
-from every step. The paper's comparison is ``H1`` against ``A``.
+from every step. The letters combine, in the order ``w``, ``g``, ``i``: ``"H1wi"`` is the warm start with intra-option
+transitions, ``"H1gi"`` greedy options with them (all in :data:`CONDITIONS`). The paper's comparison is ``H1``
+against ``A``.
 The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes later cells
 wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and
 every ``checkpoint_every`` episodes, and resumes from there.
@@ -62,7 +64,42 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-CONDITIONS = ("A", "H1", "H1w", "A0", "H1g", "H1i")
+#: what may follow ``"H1"`` in a condition's name, in this order: ``w`` options added to phase 1's DQN (no reset),
+#: ``g`` options act greedily, ``i`` intra-option transitions for the primitive actions
+OPTION_FLAGS = ("w", "g", "i")
+CONDITIONS = ("A", "H1", "H1w", "A0", "H1g", "H1i", "H1wg", "H1wi", "H1gi", "H1wgi")
+
+
+@dataclass(frozen=True)
+class _OptionFlags:
+    warm: bool
+    greedy: bool
+    intra: bool
+
+
+def _option_flags(condition: str) -> _OptionFlags | None:
+    """The flags of an options condition (``"H1"`` then any of :data:`OPTION_FLAGS`, in order); ``None`` for ``A``
+    and ``A0``."""
+    if not condition.startswith("H1"):
+        return None
+    rest = condition[2:]
+    return _OptionFlags(warm="w" in rest, greedy="g" in rest, intra="i" in rest)
+
+
+def _describe(condition: str) -> str:
+    flags = _option_flags(condition)
+    if flags is None:
+        return {"A": "the phase-1 DQN continued with actions only", "A0": "DQN over actions only from a reset Q-function"}[
+            condition
+        ]
+    text = "DQN over actions + DDO options" + (
+        ", started from phase 1's DQN (output layer widened, replay kept)" if flags.warm else " from a reset Q-function"
+    )
+    if flags.greedy:
+        text += ", each option acting with the argmax of its control policy"
+    if flags.intra:
+        text += ", the primitive actions' values also learned from the steps options take"
+    return text
 
 
 @dataclass
@@ -182,6 +219,10 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
     Examples:
         >>> [c.name for c in atari_cells(["Pooyan"], 2)]
         ['Pooyan-A-seed0', 'Pooyan-A-seed1', 'Pooyan-H1-seed0', 'Pooyan-H1-seed1']
+
+    Raises:
+        ValueError: a condition not in :data:`CONDITIONS` (``A``, ``A0``, or ``H1`` followed by any of ``w``, ``g``,
+            ``i`` in that order), or none.
     """
     bad = [c for c in conditions if c not in CONDITIONS]
     if bad or not conditions:
@@ -438,8 +479,8 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
     """Runs one ``(game, condition, seed)`` cell of the Atari RAM experiment, resuming from its checkpoints.
 
     Args:
-        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of ``"A"``, ``"H1"``, ``"H1w"``,
-            ``"A0"``, ``"H1g"``, ``"H1i"`` (see the module docstring).
+        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of :data:`CONDITIONS`: ``"A"``,
+            ``"A0"``, ``"H1"``, and ``"H1"`` followed by any of ``w``, ``g``, ``i`` (see the module docstring).
 
     Keyword Args:
         config (AtariConfig or dict): the settings.
@@ -485,10 +526,11 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         phase3 = {}
     else:
         k = metadata["num_options"]
+        flags = _option_flags(cell.condition)
         agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k,
-                            greedy_options=cell.condition == "H1g", intra_option_actions=cell.condition == "H1i")
+                            greedy_options=flags.greedy, intra_option_actions=flags.intra)
         copied = 0
-        if cell.condition == "H1w":
+        if flags.warm:
             # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
             # the networks reached since (its buffer is not saved: the copied one stands in for it)
             agent.warm_start_from(phase1_agent)
@@ -731,18 +773,10 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
     f = _ci_text
     c_name = comparisons[0].condition if comparisons else "H1"
     b_name = comparisons[0].baseline if comparisons else "A"
-    what = {
-        "H1": "DQN over actions + DDO options from a reset Q-function",
-        "H1w": "DQN over actions + DDO options, started from phase 1's DQN (output layer widened, replay kept)",
-        "H1g": "as H1, each option acting with the argmax of its control policy",
-        "H1i": "as H1, the primitive actions' values also learned from the steps options take",
-        "A0": "DQN over actions only from a reset Q-function",
-        "A": "the phase-1 DQN continued with actions only",
-    }
     lines = [header + "\n"] if header else []
     lines += [
         "Returns of phase 3 (after the shared phase 1), mean over seeds with 95% bootstrap intervals. "
-        f"`{c_name}`: {what.get(c_name, c_name)}; `{b_name}`: {what.get(b_name, b_name)}. Verdict: whose interval of "
+        f"`{c_name}`: {_describe(c_name)}; `{b_name}`: {_describe(b_name)}. Verdict: whose interval of "
         f"the paired difference {c_name} - {b_name} lies above (or below) 0; *n.s.* when it contains 0.\n",
         f"| game | seeds | phase-3 episodes | {b_name}, mean over episodes | {c_name}, mean over episodes | "
         f"{c_name} - {b_name} | better (equal episodes) | {b_name}, last {final_window} | {c_name}, last "
@@ -766,22 +800,26 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
     return "\n".join(lines) + "\n"
 
 
-#: the pairs that :func:`atari_summary_pairs` reports, when both conditions ran: the paper's comparison first
-SUMMARY_PAIRS = (
-    ("H1", "A"), ("H1w", "A"), ("H1g", "A"), ("H1i", "A"), ("A0", "A"), ("H1", "A0"), ("H1g", "A0"), ("H1i", "A0"),
-    ("H1g", "H1"), ("H1i", "H1"),
-)
-
-
 def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
-    """The ``(condition, baseline)`` pairs to report for a sweep over ``conditions``.
+    """The ``(condition, baseline)`` pairs to report for a sweep over ``conditions``, among those that ran.
+
+    The paper's comparison (``H1`` vs ``A``) first; then every other options condition against ``A``; ``A0`` against
+    ``A`` (what the reset costs); every options condition with a reset (no ``w``) against ``A0``; every options
+    condition against ``H1``; and every condition with ``i`` and another flag against the same without ``i``.
 
     Examples:
         >>> atari_summary_pairs(["A", "H1", "A0"])
         [('H1', 'A'), ('A0', 'A'), ('H1', 'A0')]
+        >>> atari_summary_pairs(["A", "H1", "H1w", "H1wi"])
+        [('H1', 'A'), ('H1w', 'A'), ('H1wi', 'A'), ('H1w', 'H1'), ('H1wi', 'H1'), ('H1wi', 'H1w')]
     """
-    have = set(conditions)
-    return [(c, b) for c, b in SUMMARY_PAIRS if c in have and b in have]
+    have = [c for c in CONDITIONS if c in set(conditions)]
+    options = [c for c in have if _option_flags(c) is not None]
+    pairs = [("H1", "A")] + [(c, "A") for c in options if c != "H1"] + [("A0", "A")]
+    pairs += [(c, "A0") for c in options if not _option_flags(c).warm]
+    pairs += [(c, "H1") for c in options if c != "H1"]
+    pairs += [(c, c[:-1]) for c in options if c.endswith("i") and len(c) > 3]
+    return [(c, b) for c, b in pairs if c in have and b in have]
 
 
 def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *, phase1_episodes: int) -> str:
