@@ -6,6 +6,7 @@ import torch
 
 from _tiny_envs import Corridor, go_right_options
 from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
+from torchrl_options.data import option_suffix_transitions
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
@@ -233,17 +234,19 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
 
 
 def test_intra_option_actions_buffer_holds_every_option_step():
-    """With ``intra_option_actions`` the buffer holds the same decisions as without, plus one one-step transition of
-    the executed primitive action per step an option controlled (no gradient step: both agents act alike)."""
+    """With ``intra_option_actions`` and ``option_suffixes`` the buffer holds the same decisions as without, plus one
+    one-step transition of the executed primitive action per step an option controlled and the option suffixes of
+    each batch (no gradient step: both agents act alike)."""
     counts = []
 
     def count(agent, batch):
-        counts.append(int((batch["next", "executed_option"] >= 0).sum()))
+        suffixes = option_suffix_transitions(batch, agent.config.gamma, action_offset=2).shape[0]
+        counts.append(int((batch["next", "executed_option"] >= 0).sum()) + suffixes)
 
     buffers = []
     for intra in (False, True):
         cfg = config("both", total_frames=640, learning_starts=10**9, greedy_options=False, intra_option_actions=intra,
-                     eps_annealing_frames=10**6)
+                     option_suffixes=intra, eps_annealing_frames=10**6)
         agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
         agent.train(callback=count if intra else None)
         buffers.append(agent.replay_buffer[: len(agent.replay_buffer)].exclude("index"))
@@ -254,10 +257,13 @@ def test_intra_option_actions_buffer_holds_every_option_step():
     assert decisions.shape == plain.shape
     for key in ("observation", "action", "steps_to_next_obs", ("next", "observation"), ("next", "reward")):
         torch.testing.assert_close(decisions[key], plain[key])
-    steps = with_intra[intra]
-    assert steps.shape[0] == sum(counts) > 0
-    assert (steps["action"] < 2).all() and (steps["steps_to_next_obs"] == 1).all()
+    extra = with_intra[intra]
+    assert extra.shape[0] == sum(counts) > 0
+    steps = extra[extra["action"] < 2]  # the primitive steps; the rest are option suffixes
+    assert (steps["steps_to_next_obs"] == 1).all()
     assert (steps["action"] == steps["next", "received_action"]).all()  # the action the corridor received
+    suffixes = extra[extra["action"] >= 2]
+    assert suffixes.shape[0] > 0 and (suffixes["steps_to_next_obs"] >= 1).all()
 
 
 def test_intra_option_actions_learn_primitive_values():
@@ -289,8 +295,45 @@ def test_intra_option_actions_learn_primitive_values():
     assert (learned[True][0] == 0).all()  # "left" is never taken, inside an option or not
 
 
+def test_option_suffixes_learn_option_values_where_never_decided():
+    """The agent decides only at cell 0 (option 0 runs to the goal); with ``option_suffixes`` the option's value is
+    also learned at the cells it passes through, Q(c, option 0) -> gamma ** (cells left - 1); without, never."""
+    length, gamma = 6, 0.95
+
+    def make():
+        return Corridor(length, max_steps=10, batch_size=[4])
+
+    learned = {}
+    for suffixes in (False, True):
+        net = torch.nn.Linear(length, 4, bias=False)
+        with torch.no_grad():
+            net.weight.zero_()
+            net.weight[2, 0] = 100.0  # at cell 0 the greedy policy starts option 0, which then runs to the goal
+        cfg = config("both", total_frames=600, frames_per_batch=20, updates_per_batch=4, learning_starts=8,
+                     batch_size=16, lr=0.02, eps_init=0.0, eps_end=0.0, hard_update_interval=10**6, gamma=gamma,
+                     option_suffixes=suffixes)
+        agent = OptionsDQN(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
+        agent.train()
+        buf = agent.replay_buffer[: len(agent.replay_buffer)]
+        if suffixes:
+            extra = buf[buf["intra_option"].reshape(-1)]
+            assert (extra["action"] == 2).all() and (extra["position"] > 0).all()
+            buf = buf[~buf["intra_option"].reshape(-1)]
+        assert (buf["action"] == 2).all() and (buf["position"] == 0).all()  # decided at cell 0 only
+        learned[suffixes] = net.weight.detach().clone()
+    assert (learned[False][2, 1:] == 0).all()
+    expected = gamma ** torch.arange(length - 2, 0, -1, dtype=torch.float) / gamma  # cells 1 .. length-2
+    torch.testing.assert_close(learned[True][2, 1 : length - 1], expected, atol=0.1, rtol=0)
+    assert (learned[True][:2] == 0).all()  # the primitive actions were never taken as decisions or stored
+
+
 def test_intra_option_actions_errors():
     for mode in ("actions", "options"):
         kwargs = {} if mode == "actions" else dict(options=go_right_options(LENGTH), num_options=2)
         with pytest.raises(ValueError, match="intra_option_actions=True needs mode='both'"):
             OptionsDQN(corridor, config(mode, intra_option_actions=True), **kwargs)
+    with pytest.raises(ValueError, match="option_suffixes=True needs options"):
+        OptionsDQN(corridor, config("actions", option_suffixes=True))
+    with pytest.raises(ValueError, match="discount_per='step'"):
+        OptionsDQN(corridor, config("both", option_suffixes=True, discount_per="decision"),
+                   options=go_right_options(LENGTH), num_options=2)

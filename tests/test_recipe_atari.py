@@ -206,38 +206,43 @@ def test_control_and_warm_start_conditions(tmp_path):
 
 
 def test_combined_conditions(tmp_path):
-    """``H1wi``: the warm start with intra-option transitions; the summary compares it with A, H1w and H1."""
+    """``H1wi`` (the warm start with intra-option transitions) and ``H1is``; the summary compares them with A, H1w
+    and H1."""
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,H1w,H1wi]",
+    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,H1w,H1wi,H1is]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8"])
-    assert sorted(c.condition for c in recipe.run(cfg)) == ["A", "H1", "H1w", "H1wi"]
+    assert sorted(c.condition for c in recipe.run(cfg)) == ["A", "H1", "H1is", "H1w", "H1wi"]
     summary = (tmp_path / "summary.md").read_text()
-    for header in ("## H1wi vs A", "## H1wi vs H1w", "## H1wi vs H1", "## H1w vs H1"):
+    for header in ("## H1wi vs A", "## H1wi vs H1w", "## H1wi vs H1", "## H1w vs H1", "## H1is vs A", "## H1is vs H1"):
         assert header in summary
     assert "## H1wi vs A0" not in summary and "started from phase 1's DQN" in summary
     assert "| Pooyan | H1wi | 1 |" in summary
 
 
 def test_intra_option_condition_and_its_option_usage():
-    """H1i's agent stores the steps inside options as one-step primitive transitions; ``option_usage`` counts the
-    decisions only, so H1i's figures compare with H1's."""
+    """H1is's agent stores the steps inside options as one-step primitive transitions and the option suffixes;
+    ``option_usage`` counts the decisions only, so its figures compare with H1's."""
     from torchrl_options.modules import OptionsMLP
 
     config = AtariConfig(max_episode_steps=40, hidden_sizes=(8, 8, 8), frames_per_batch=40, learning_starts=10**9)
     n = _num_actions("Pooyan", config)
     torch.manual_seed(0)
     options = OptionsMLP(128, n, 2, num_cells=[8])
-    agent = _make_agent("Pooyan", config, 0, "both", options=options, num_options=2, intra_option_actions=True)
-    assert agent.config.intra_option_actions
+    agent = _make_agent("Pooyan", config, 0, "both", options=options, num_options=2, intra_option_actions=True,
+                        option_suffixes=True)
+    assert agent.config.intra_option_actions and agent.config.option_suffixes
     agent.train(total_frames=200)
     buf = agent.replay_buffer[: len(agent.replay_buffer)]
     intra = buf["intra_option"].reshape(-1)
     decisions = buf[~intra]
     option_steps = int(decisions["steps_to_next_obs"][decisions["action"] >= n].sum())
-    assert 0 < option_steps <= int(intra.sum())  # (plus the steps of option runs still pending)
-    assert (buf["action"][intra] < n).all()
+    primitive = buf[intra & (buf["action"] < n)]
+    assert (primitive["steps_to_next_obs"] == 1).all()
+    assert 0 < option_steps <= primitive.shape[0]  # (plus the steps of option runs still pending)
+    suffixes = buf[intra & (buf["action"] >= n)]
+    assert suffixes.shape[0] > 0 and (suffixes["action"] < n + 2).all()
     usage = option_usage(agent, n)
     is_option = decisions["action"] >= n
     assert usage["option_decision_share"] == pytest.approx(float(is_option.float().mean()))

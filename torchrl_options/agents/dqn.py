@@ -36,7 +36,7 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
-from torchrl_options.data.intra_option import intra_option_transitions
+from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.smdp import SMDPTransitions
 from torchrl_options.transforms.decision_counter import DecisionCounter
 from torchrl_options.transforms.option_executor import OptionExecutor
@@ -80,6 +80,10 @@ class OptionsDQNConfig:
             (:func:`~torchrl_options.data.intra_option_transitions`; intra-option learning, Sutton, Precup and
             Singh, 1999), next to the decision-level transitions, with ``"intra_option"`` set to ``True``
             (``False`` on decisions). Needs ``mode="both"`` over an env's own actions (a level-1 executor).
+        option_suffixes: also learn the options' values from every step they run: the rest of each option run,
+            from each of its steps after the first, goes to the replay buffer as a transition of starting that
+            option there (:func:`~torchrl_options.data.option_suffix_transitions`; valid for Markov options),
+            marked ``"intra_option"`` as above. Needs options (``mode`` ``"both"`` or ``"options"``) at level 1.
         max_decisions: if set, episodes are limited in decisions rather than primitive steps: a
             :class:`~torchrl_options.transforms.DecisionCounter` after the executor truncates an episode once its
             ``max_decisions``-th decision (a primitive action, or an option run to termination) is over. The
@@ -114,6 +118,7 @@ class OptionsDQNConfig:
     max_grad_norm: float | None = 10.0
     greedy_options: bool = False
     intra_option_actions: bool = False
+    option_suffixes: bool = False
     max_decisions: int | None = None
     observation_key: NestedKey = "observation"
     seed: int = 0
@@ -213,6 +218,13 @@ class OptionsDQN:
                 "intra_option_actions=True needs mode='both' over an env's own primitive actions (a level-1 "
                 f"executor), got mode={config.mode!r} with an executor at level {self._executor_level}."
             )
+        if config.option_suffixes and (config.mode == "actions" or self._executor_level != 1):
+            raise ValueError(
+                "option_suffixes=True needs options (mode 'both' or 'options') run by a level-1 executor, got "
+                f"mode={config.mode!r} with an executor at level {self._executor_level}."
+            )
+        if config.option_suffixes and config.discount_per != "step":
+            raise ValueError("option_suffixes=True discounts per primitive step: it needs discount_per='step'.")
         self._num_primitive = int(spec.n) - (num_options or 0) if config.mode == "both" else None
         if q_network is None:
             obs_dim = self.env.observation_spec[config.observation_key].shape[-1]
@@ -316,7 +328,7 @@ class OptionsDQN:
             for batch in collector:
                 self._record_episodes(batch)
                 decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
-                if config.intra_option_actions:
+                if config.intra_option_actions or config.option_suffixes:
                     decisions = self._with_intra_option_steps(decisions, batch)
                 if decisions.shape[0]:
                     self.replay_buffer.extend(decisions)
@@ -333,10 +345,15 @@ class OptionsDQN:
         return self.log
 
     def _with_intra_option_steps(self, decisions: TensorDictBase, batch: TensorDictBase) -> TensorDictBase:
-        steps = intra_option_transitions(batch, num_actions=self._num_primitive)
-        decisions.set("intra_option", torch.zeros(decisions.shape, dtype=torch.bool, device=decisions.device))
-        steps.set("intra_option", torch.ones(steps.shape, dtype=torch.bool, device=steps.device))
-        return torch.cat([decisions, steps.to(decisions.device)], 0)
+        """The decisions, then the one-step primitive transitions and the option suffixes that are enabled."""
+        parts = [decisions.set("intra_option", torch.zeros(decisions.shape, dtype=torch.bool, device=decisions.device))]
+        if self.config.intra_option_actions:
+            parts.append(intra_option_transitions(batch, num_actions=self._num_primitive))
+        if self.config.option_suffixes:
+            parts.append(option_suffix_transitions(batch, self.config.gamma, action_offset=self._num_primitive or 0))
+        for part in parts[1:]:
+            part.set("intra_option", torch.ones(part.shape, dtype=torch.bool, device=part.device))
+        return torch.cat([parts[0]] + [p.to(decisions.device) for p in parts[1:]], 0)
 
     def _update(self) -> None:
         sample = self.replay_buffer.sample().to(self.device)
@@ -511,7 +528,7 @@ class OptionsDQN:
         self.loss_module.load_state_dict(state)
         if copy_buffer and len(source.replay_buffer):
             data = source.replay_buffer[: len(source.replay_buffer)].exclude("index")
-            if self.config.intra_option_actions:  # the copied transitions are decisions
+            if self.config.intra_option_actions or self.config.option_suffixes:  # the copied transitions are decisions
                 data.set("intra_option", torch.zeros(data.shape, dtype=torch.bool, device=data.device))
             self.replay_buffer.extend(widen_action_values(data.to(self.device), n_self))
         return self

@@ -8,7 +8,12 @@ Q-learning is off-policy: it is a valid transition of the augmented action space
 Singh, 1999, "Between MDPs and semi-MDPs", section 7) restricted to the primitive actions, whose one-step options
 are consistent with any step that took their action. With it, an agent over actions and options learns the values
 of its primitive actions from every env step, as an agent over actions alone does, instead of only from the steps
-where it chose a primitive action. Fox et al. (2017) do not use it.
+where it chose a primitive action.
+
+The options themselves get the same from :func:`option_suffix_transitions`: an option whose control policy and
+termination depend on the current state only (a Markov option, as DDO's are) behaves from any state it passes
+through exactly as if it had been started there, so the rest of each run, from every step after its first, is a
+sample of "start this option here". Fox et al. (2017) use neither.
 """
 from __future__ import annotations
 
@@ -16,7 +21,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
 
-__all__ = ["intra_option_transitions"]
+__all__ = ["intra_option_transitions", "option_suffix_transitions"]
 
 
 def intra_option_transitions(
@@ -103,4 +108,134 @@ def intra_option_transitions(
     out.set(action_key, executed.to(out.get(action_key).dtype).reshape(out.get(action_key).shape))
     reward = out.get(reward_key)
     out.set(steps_key, torch.ones(reward.shape[0], *([1] * (reward.ndim - 1)), dtype=torch.long, device=reward.device))
+    return out
+
+
+def option_suffix_transitions(
+    data: TensorDictBase,
+    gamma: float,
+    *,
+    action_offset: int,
+    action_key: NestedKey = "action",
+    executed_option_key: NestedKey = ("next", "executed_option"),
+    decision_key: NestedKey = ("next", "option_decision"),
+    reward_key: NestedKey = ("next", "reward"),
+    done_key: NestedKey = ("next", "done"),
+    steps_key: NestedKey = "steps_to_next_obs",
+) -> TensorDictBase:
+    r"""The rest of every option run, from each of its steps after the first, as a decision-level transition.
+
+    For a run of option ``o`` over steps ``t0 .. t1`` (decided at ``t0``; :class:`~torchrl_options.data.SMDPTransitions`
+    gives its transition from ``t0``), each step ``t0 < t <= t1`` yields the transition of starting ``o`` at
+    ``s_t``: action ``action_offset + o``, reward :math:`\sum_{j=t}^{t_1} \gamma^{j-t} r_j`, ``"next"`` entries of
+    step ``t1`` and ``steps_key = t1 - t + 1``. This is valid for Markov options (the module docstring) and gives
+    their values one transition per step they run instead of one per run.
+
+    Only runs that end within ``data`` (at a step followed by a decision, or at an episode end) are used: a run
+    still going at the last step of an env's row gives no suffix from its steps in this batch (a run that began
+    before the batch does: a suffix needs only its own steps).
+
+    Args:
+        data (TensorDictBase): step-level data of shape ``[T]`` or ``[*B, T]`` (time last), as yielded by a
+            :class:`~torchrl.collectors.Collector` over an env with an
+            :class:`~torchrl_options.transforms.OptionExecutor`.
+        gamma (float): the discount per primitive step.
+
+    Keyword Args:
+        action_offset (int): the augmented action of option ``o`` is ``action_offset + o``: the number of primitive
+            actions (``primitive_actions=True``), or ``0``.
+        action_key, executed_option_key, decision_key, reward_key, done_key, steps_key (NestedKey): the entries
+            (the executor's records and TorchRL's defaults).
+
+    Returns:
+        A TensorDict of shape ``[M]`` with the entries of ``data``: root entries of the suffix's first step with
+        ``action_key`` set to the option's augmented action, ``"next"`` entries of the run's last step with the
+        discounted reward sum, and ``steps_key``. Ordered by env, then time.
+
+    Raises:
+        KeyError: ``data`` lacks ``executed_option_key`` or ``decision_key``.
+        ValueError: no time dimension, or ``gamma`` outside ``[0, 1]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options.data import option_suffix_transitions
+        >>> data = TensorDict({
+        ...     "observation": torch.arange(5.0),
+        ...     "action": torch.tensor([0, 3, 2, 0, 1]),  # A=2: action 0, then option 1 for 3 steps, action 1
+        ...     "next": {
+        ...         "observation": torch.arange(1.0, 6.0),
+        ...         "reward": torch.ones(5, 1),
+        ...         "done": torch.zeros(5, 1, dtype=torch.bool),
+        ...         "executed_option": torch.tensor([-1, 1, 1, 1, -1]),
+        ...         "option_decision": torch.tensor([True, True, False, False, True]),
+        ...     },
+        ... }, [5])
+        >>> out = option_suffix_transitions(data, 0.5, action_offset=2)
+        >>> out["observation"], out["action"], out["steps_to_next_obs"].squeeze(-1), out["next", "reward"].squeeze(-1)
+        (tensor([2., 3.]), tensor([3, 3]), tensor([2, 1]), tensor([1.5000, 1.0000]))
+        >>> out["next", "observation"]  # both end where the run ends, at s_4
+        tensor([4., 4.])
+    """
+    if data.ndim == 0:
+        raise ValueError("option_suffix_transitions expects data with a time dimension (shape [T] or [*B, T]).")
+    if not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must lie in [0, 1], got {gamma}.")
+    action_key, option_key, decision_key = unravel_key(action_key), unravel_key(executed_option_key), unravel_key(decision_key)
+    reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)
+    for key in (option_key, decision_key):
+        if data.get(key, None) is None:
+            raise KeyError(f"option_suffix_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
+    T = data.shape[-1]
+    rows = data.reshape(-1, T)
+    N = rows.shape[0]
+
+    def per_step(key: NestedKey) -> torch.Tensor:
+        value = rows.get(key)
+        if value.numel() != N * T:
+            raise ValueError(f"Expected one {key!r} per step (shape {[N, T]} up to singleton dims), got {tuple(value.shape)}.")
+        return value.reshape(N, T)
+
+    option = per_step(option_key)
+    decision = per_step(decision_key).bool()
+    done = per_step(done_key).bool()
+    reward = rows.get(reward_key)  # [N, T, *r]
+    # the run goes on after step t: not the last step, no episode end, and no decision at t + 1
+    goes_on = torch.zeros_like(done)
+    goes_on[:, :-1] = ~done[:, :-1] & ~decision[:, 1:]
+    # backwards over time: the discounted reward to the end of the run, its length, its last step, and whether that
+    # end is in the batch
+    ret = torch.zeros_like(reward[:, 0])
+    length = torch.zeros(N, dtype=torch.long, device=done.device)
+    last = torch.zeros(N, dtype=torch.long, device=done.device)
+    known = torch.zeros(N, dtype=torch.bool, device=done.device)
+    returns, lengths, lasts, knowns = [], [], [], []
+    for t in range(T - 1, -1, -1):
+        cont = goes_on[:, t]
+        cont_r = cont.view(N, *([1] * (ret.ndim - 1)))
+        ret = reward[:, t] + gamma * torch.where(cont_r, ret, torch.zeros_like(ret))
+        length = 1 + torch.where(cont, length, 0)
+        last = torch.where(cont, last, t)
+        # a run that stops at t ends in the batch unless t is the last step and the episode goes on
+        known = torch.where(cont, known, done[:, t] | (t < T - 1))
+        returns.append(ret)
+        lengths.append(length)
+        lasts.append(last)
+        knowns.append(known)
+    ret = torch.stack(returns[::-1], 1)  # [N, T, *r]
+    length = torch.stack(lengths[::-1], 1)
+    last = torch.stack(lasts[::-1], 1)
+    known = torch.stack(knowns[::-1], 1)
+    # a step after the first of its run (no decision), whose run ends in the batch
+    use = (option >= 0) & ~decision & known
+    flat = rows.reshape(-1)
+    index = use.reshape(-1).nonzero().squeeze(-1)
+    ends = (torch.arange(N, device=done.device).unsqueeze(1) * T + last).reshape(-1)[index]
+    out = flat[index].exclude("next")
+    out.set("next", flat.get("next")[ends])
+    r = ret.reshape(N * T, *ret.shape[2:])[index]
+    out.set(reward_key, r)
+    out.set(action_key, (action_offset + option.reshape(-1)[index]).to(out.get(action_key).dtype).reshape(out.get(action_key).shape))
+    k = length.reshape(-1)[index]
+    out.set(steps_key, k.view(k.shape[0], *([1] * (r.ndim - 1))) if r.ndim > 1 else k)
     return out

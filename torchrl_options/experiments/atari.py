@@ -14,8 +14,10 @@ deterministic, so a sampled option also explores, where the paper's argument is 
 demonstrator's behaviour uninterrupted by exploration.) And ``"H1i"``, as ``H1`` but the Q-function also learns
 its primitive actions' values from the steps that options take (``OptionsDQNConfig.intra_option_actions``): under
 ``H1`` the steps inside options, often half of all steps, teach the primitive actions nothing, where ``A0`` learns
-from every step. The letters combine, in the order ``w``, ``g``, ``i``: ``"H1wi"`` is the warm start with intra-option
-transitions, ``"H1gi"`` greedy options with them (all in :data:`CONDITIONS`). The paper's comparison is ``H1``
+from every step. ``"H1s"``: as ``H1``, but the options' values are also learned from every step they run, the rest
+of each run being a sample of starting the option there (``OptionsDQNConfig.option_suffixes``). The letters
+combine, in the order ``w``, ``g``, ``i``, ``s``: ``"H1wi"`` is the warm start with intra-option transitions,
+``"H1is"`` learns both kinds of values from every step (all in :data:`CONDITIONS`). The paper's comparison is ``H1``
 against ``A``.
 The conditions of a seed share phases 1 and 2, cached in ``<out>/<game>/seed<s>/`` (a file lock makes later cells
 wait for, then reuse, the first one's phase-1 checkpoint and options). Every phase checkpoints at its end and
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import itertools
 import json
 import logging
 import os
@@ -65,9 +68,14 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: what may follow ``"H1"`` in a condition's name, in this order: ``w`` options added to phase 1's DQN (no reset),
-#: ``g`` options act greedily, ``i`` intra-option transitions for the primitive actions
-OPTION_FLAGS = ("w", "g", "i")
-CONDITIONS = ("A", "H1", "H1w", "A0", "H1g", "H1i", "H1wg", "H1wi", "H1gi", "H1wgi")
+#: ``g`` options act greedily, ``i`` intra-option transitions for the primitive actions, ``s`` option suffixes
+OPTION_FLAGS = ("w", "g", "i", "s")
+CONDITIONS = ("A", "H1", "H1w", "A0", "H1g") + tuple(
+    "H1" + "".join(letters)
+    for n in range(1, len(OPTION_FLAGS) + 1)
+    for letters in itertools.combinations(OPTION_FLAGS, n)
+    if "".join(letters) not in ("w", "g")
+)
 
 
 @dataclass(frozen=True)
@@ -75,6 +83,7 @@ class _OptionFlags:
     warm: bool
     greedy: bool
     intra: bool
+    suffixes: bool
 
 
 def _option_flags(condition: str) -> _OptionFlags | None:
@@ -83,7 +92,7 @@ def _option_flags(condition: str) -> _OptionFlags | None:
     if not condition.startswith("H1"):
         return None
     rest = condition[2:]
-    return _OptionFlags(warm="w" in rest, greedy="g" in rest, intra="i" in rest)
+    return _OptionFlags(warm="w" in rest, greedy="g" in rest, intra="i" in rest, suffixes="s" in rest)
 
 
 def _describe(condition: str) -> str:
@@ -99,6 +108,8 @@ def _describe(condition: str) -> str:
         text += ", each option acting with the argmax of its control policy"
     if flags.intra:
         text += ", the primitive actions' values also learned from the steps options take"
+    if flags.suffixes:
+        text += ", the options' values also learned from every step they run (option suffixes)"
     return text
 
 
@@ -222,7 +233,7 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
 
     Raises:
         ValueError: a condition not in :data:`CONDITIONS` (``A``, ``A0``, or ``H1`` followed by any of ``w``, ``g``,
-            ``i`` in that order), or none.
+            ``i``, ``s`` in that order), or none.
     """
     bad = [c for c in conditions if c not in CONDITIONS]
     if bad or not conditions:
@@ -252,7 +263,7 @@ def _num_actions(game: str, config: AtariConfig) -> int:
 
 
 def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=None, num_options=None,
-                greedy_options: bool = False, intra_option_actions: bool = False):
+                greedy_options: bool = False, intra_option_actions: bool = False, option_suffixes: bool = False):
     from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
     from torchrl_options.envs.atari import ram_q_network
 
@@ -280,6 +291,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         double_dqn=config.double_dqn,
         greedy_options=greedy_options,
         intra_option_actions=intra_option_actions,
+        option_suffixes=option_suffixes,
         seed=seed,
         device=config.device,
     )
@@ -480,7 +492,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
 
     Args:
         cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of :data:`CONDITIONS`: ``"A"``,
-            ``"A0"``, ``"H1"``, and ``"H1"`` followed by any of ``w``, ``g``, ``i`` (see the module docstring).
+            ``"A0"``, ``"H1"``, and ``"H1"`` followed by any of ``w``, ``g``, ``i``, ``s`` (see the module docstring).
 
     Keyword Args:
         config (AtariConfig or dict): the settings.
@@ -528,7 +540,8 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         k = metadata["num_options"]
         flags = _option_flags(cell.condition)
         agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k,
-                            greedy_options=flags.greedy, intra_option_actions=flags.intra)
+                            greedy_options=flags.greedy, intra_option_actions=flags.intra,
+                            option_suffixes=flags.suffixes)
         copied = 0
         if flags.warm:
             # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
@@ -805,7 +818,8 @@ def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
 
     The paper's comparison (``H1`` vs ``A``) first; then every other options condition against ``A``; ``A0`` against
     ``A`` (what the reset costs); every options condition with a reset (no ``w``) against ``A0``; every options
-    condition against ``H1``; and every condition with ``i`` and another flag against the same without ``i``.
+    condition against ``H1``; and every condition ending in ``i`` or ``s`` after another letter against the same
+    without that last letter.
 
     Examples:
         >>> atari_summary_pairs(["A", "H1", "A0"])
@@ -818,7 +832,7 @@ def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
     pairs = [("H1", "A")] + [(c, "A") for c in options if c != "H1"] + [("A0", "A")]
     pairs += [(c, "A0") for c in options if not _option_flags(c).warm]
     pairs += [(c, "H1") for c in options if c != "H1"]
-    pairs += [(c, c[:-1]) for c in options if c.endswith("i") and len(c) > 3]
+    pairs += [(c, c[:-1]) for c in options if c[-1] in "is" and len(c) > 3]
     return [(c, b) for c, b in pairs if c in have and b in have]
 
 
