@@ -328,7 +328,7 @@ class OptionsDQN:
             for batch in collector:
                 self._record_episodes(batch)
                 decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
-                if config.intra_option_actions or config.option_suffixes:
+                if self._adds_intra_option_steps:
                     decisions = self._with_intra_option_steps(decisions, batch)
                 if decisions.shape[0]:
                     self.replay_buffer.extend(decisions)
@@ -343,6 +343,10 @@ class OptionsDQN:
         finally:
             collector.shutdown(close_env=False)
         return self.log
+
+    @property
+    def _adds_intra_option_steps(self) -> bool:
+        return self.config.intra_option_actions or self.config.option_suffixes
 
     def _with_intra_option_steps(self, decisions: TensorDictBase, batch: TensorDictBase) -> TensorDictBase:
         """The decisions, then the one-step primitive transitions and the option suffixes that are enabled."""
@@ -528,7 +532,7 @@ class OptionsDQN:
         self.loss_module.load_state_dict(state)
         if copy_buffer and len(source.replay_buffer):
             data = source.replay_buffer[: len(source.replay_buffer)].exclude("index")
-            if self.config.intra_option_actions or self.config.option_suffixes:  # the copied transitions are decisions
+            if self._adds_intra_option_steps:  # the copied transitions are decisions
                 data.set("intra_option", torch.zeros(data.shape, dtype=torch.bool, device=data.device))
             self.replay_buffer.extend(widen_action_values(data.to(self.device), n_self))
         return self

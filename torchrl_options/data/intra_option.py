@@ -39,10 +39,10 @@ def intra_option_transitions(
     Selects every step ``t`` that an option was in control of, ``data[executed_option_key][t] >= 0`` (the first
     step of each option run included), and writes the primitive action the env received,
     ``data[executed_action_key][t]``, in place of the policy's action, and ``steps_key = 1``. Steps where the
-    policy's own primitive action was executed are left out: they are decisions already. Added to the replay buffer next to the decision-level
-    transitions of :class:`~torchrl_options.data.SMDPTransitions`, they let ``DQNLoss`` learn the primitive
-    actions' values from every env step (see the module docstring). They apply to an executor whose primitive
-    actions are the env's actions (``level=1``, ``primitive_actions=True``).
+    policy's own primitive action was executed are left out: they are decisions already. Added to the replay
+    buffer next to the decision-level transitions of :class:`~torchrl_options.data.SMDPTransitions`, they let
+    ``DQNLoss`` learn the primitive actions' values from every env step (see the module docstring). They apply to
+    an executor whose primitive actions are the env's actions (``level=1``, ``primitive_actions=True``).
 
     Args:
         data (TensorDictBase): step-level data of shape ``[T]`` or ``[*B, T]``, as yielded by a
@@ -181,7 +181,8 @@ def option_suffix_transitions(
         raise ValueError("option_suffix_transitions expects data with a time dimension (shape [T] or [*B, T]).")
     if not 0.0 <= gamma <= 1.0:
         raise ValueError(f"gamma must lie in [0, 1], got {gamma}.")
-    action_key, option_key, decision_key = unravel_key(action_key), unravel_key(executed_option_key), unravel_key(decision_key)
+    action_key, option_key = unravel_key(action_key), unravel_key(executed_option_key)
+    decision_key = unravel_key(decision_key)
     reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)
     for key in (option_key, decision_key):
         if data.get(key, None) is None:
@@ -193,7 +194,9 @@ def option_suffix_transitions(
     def per_step(key: NestedKey) -> torch.Tensor:
         value = rows.get(key)
         if value.numel() != N * T:
-            raise ValueError(f"Expected one {key!r} per step (shape {[N, T]} up to singleton dims), got {tuple(value.shape)}.")
+            raise ValueError(
+                f"Expected one {key!r} per step (shape {[N, T]} up to singleton dims), got {tuple(value.shape)}."
+            )
         return value.reshape(N, T)
 
     option = per_step(option_key)
@@ -203,29 +206,21 @@ def option_suffix_transitions(
     # the run goes on after step t: not the last step, no episode end, and no decision at t + 1
     goes_on = torch.zeros_like(done)
     goes_on[:, :-1] = ~done[:, :-1] & ~decision[:, 1:]
-    # backwards over time: the discounted reward to the end of the run, its length, its last step, and whether that
-    # end is in the batch
+    # backwards over time: the discounted reward to the end of the run and the run's steps left (t included)
     ret = torch.zeros_like(reward[:, 0])
     length = torch.zeros(N, dtype=torch.long, device=done.device)
-    last = torch.zeros(N, dtype=torch.long, device=done.device)
-    known = torch.zeros(N, dtype=torch.bool, device=done.device)
-    returns, lengths, lasts, knowns = [], [], [], []
+    returns, lengths = [], []
     for t in range(T - 1, -1, -1):
         cont = goes_on[:, t]
-        cont_r = cont.view(N, *([1] * (ret.ndim - 1)))
-        ret = reward[:, t] + gamma * torch.where(cont_r, ret, torch.zeros_like(ret))
+        ret = reward[:, t] + gamma * torch.where(cont.view(N, *([1] * (ret.ndim - 1))), ret, torch.zeros_like(ret))
         length = 1 + torch.where(cont, length, 0)
-        last = torch.where(cont, last, t)
-        # a run that stops at t ends in the batch unless t is the last step and the episode goes on
-        known = torch.where(cont, known, done[:, t] | (t < T - 1))
         returns.append(ret)
         lengths.append(length)
-        lasts.append(last)
-        knowns.append(known)
     ret = torch.stack(returns[::-1], 1)  # [N, T, *r]
     length = torch.stack(lengths[::-1], 1)
-    last = torch.stack(lasts[::-1], 1)
-    known = torch.stack(knowns[::-1], 1)
+    last = torch.arange(T, device=done.device) + length - 1  # the run's last step
+    # the run ends in the batch unless its last step is the row's last and the episode goes on there
+    known = (last < T - 1) | done.gather(1, last)
     # a step after the first of its run (no decision), whose run ends in the batch
     use = (option >= 0) & ~decision & known
     flat = rows.reshape(-1)
@@ -235,7 +230,8 @@ def option_suffix_transitions(
     out.set("next", flat.get("next")[ends])
     r = ret.reshape(N * T, *ret.shape[2:])[index]
     out.set(reward_key, r)
-    out.set(action_key, (action_offset + option.reshape(-1)[index]).to(out.get(action_key).dtype).reshape(out.get(action_key).shape))
+    action = out.get(action_key)
+    out.set(action_key, (action_offset + option.reshape(-1)[index]).to(action.dtype).reshape(action.shape))
     k = length.reshape(-1)[index]
     out.set(steps_key, k.view(k.shape[0], *([1] * (r.ndim - 1))) if r.ndim > 1 else k)
     return out

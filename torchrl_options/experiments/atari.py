@@ -5,7 +5,7 @@ actions for N episodes; 100 greedy trajectories of that DQN; DDO with K options 
 and options from a reset Q-function, against the baseline that continues the first DQN with actions only.
 
 A cell is ``(game, condition, seed)``. The conditions: ``"A"``, the baseline (phase 1's DQN continued with actions
-only); ``"H1"``, the paper's (actions + options, Q-function reset); and four that the paper does not run:
+only); ``"H1"``, the paper's (actions + options, Q-function reset); and others that the paper does not run:
 ``"A0"``, a control (actions only, Q-function reset: what the reset alone costs); ``"H1w"``, options added
 to phase 1's DQN without a reset (:meth:`~torchrl_options.agents.OptionsDQN.warm_start_from`); ``"H1g"``, as
 ``H1`` but each option acts with the argmax of its control policy instead of sampling from it. (DDO fits
@@ -26,8 +26,8 @@ every ``checkpoint_every`` episodes, and resumes from there.
 What a cell returns (one row per episode in ``results.csv``): the phase-1 episodes followed by the phase-3
 episodes, so both conditions have ``phase1_episodes + phase3_episodes`` episodes and share the first part.
 ``frames`` is the cumulative number of env steps (agent steps; ``frame_skip`` emulator frames each) at the end of
-each episode, counted from the start of phase 1; for ``H1``, ``H1w``, ``H1g`` and ``H1i`` it includes the frames of the
-greedy demonstrations of phase 2, which the baseline does not spend.
+each episode, counted from the start of phase 1; for the options conditions (``H1...``) it includes the frames of
+the greedy demonstrations of phase 2, which the baseline does not spend.
 """
 from __future__ import annotations
 
@@ -70,11 +70,10 @@ logger = logging.getLogger(__name__)
 #: what may follow ``"H1"`` in a condition's name, in this order: ``w`` options added to phase 1's DQN (no reset),
 #: ``g`` options act greedily, ``i`` intra-option transitions for the primitive actions, ``s`` option suffixes
 OPTION_FLAGS = ("w", "g", "i", "s")
-CONDITIONS = ("A", "H1", "H1w", "A0", "H1g") + tuple(
+CONDITIONS = ("A", "A0", "H1") + tuple(
     "H1" + "".join(letters)
     for n in range(1, len(OPTION_FLAGS) + 1)
     for letters in itertools.combinations(OPTION_FLAGS, n)
-    if "".join(letters) not in ("w", "g")
 )
 
 
@@ -98,9 +97,8 @@ def _option_flags(condition: str) -> _OptionFlags | None:
 def _describe(condition: str) -> str:
     flags = _option_flags(condition)
     if flags is None:
-        return {"A": "the phase-1 DQN continued with actions only", "A0": "DQN over actions only from a reset Q-function"}[
-            condition
-        ]
+        baselines = {"A": "the phase-1 DQN continued with actions only", "A0": "DQN over actions only from a reset Q-function"}
+        return baselines[condition]
     text = "DQN over actions + DDO options" + (
         ", started from phase 1's DQN (output layer widened, replay kept)" if flags.warm else " from a reset Q-function"
     )
@@ -889,7 +887,7 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
 
 
 def option_usage_markdown(out_dir: str) -> str:
-    """A Markdown table of the option usage recorded by the finished ``H1``/``H1w``/``H1g``/``H1i`` cells under ``out_dir``
+    """A Markdown table of the option usage recorded by the finished options cells (``H1...``) under ``out_dir``
     (mean over seeds of :func:`option_usage`); empty when there is none.
 
     Examples:
