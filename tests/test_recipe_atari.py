@@ -44,13 +44,17 @@ def _rows(path):
 
 
 def test_presets_compose():
-    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cores16", "gpu-hour", "paper"):
+    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cores16", "cores16-vec", "gpu-hour", "paper"):
         cfg = _config([f"atari_preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
     paper = AtariConfig.from_dict(dict(_config(["atari_preset=paper"]).atari))
     assert (paper.phase1_episodes, paper.phase3_episodes, paper.num_demonstrations) == (1000, 4000, 100)
     assert _config(["atari_preset=paper"]).seeds == 50
+    # cores16-vec: cores16's budget with cpu-vec's batching and greedy evaluation, nothing else changed
+    batching = ["atari.num_envs=8", "atari.vector_env=true", "atari.frames_per_batch=400", "atari.updates_per_batch=16",
+                "atari.fused_adam=true", "atari.eval_every=30", "atari.eval_episodes=16"]
+    assert dict(_config(["atari_preset=cores16-vec"]).atari) == dict(_config(["atari_preset=cores16", *batching]).atari)
     assert _config(["atari_preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
     # seeds: a count (0 .. n-1) or a list, e.g. to split a sweep over machines and join the results
     recipe = _recipe()
