@@ -333,3 +333,33 @@ def test_greedy_evaluation(tmp_path):
     h1 = np.mean([m for p, _, m in evals["H1"][2:]])
     a = np.mean([m for p, _, m in evals["A"][2:]])
     assert f"{h1 - a:.2f} [" in row
+
+
+def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
+    import torchrl_options.discovery as discovery
+    from torchrl_options.experiments.atari import _phase2
+
+    seen = []
+    real = discovery.discover_options
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["m_steps"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(discovery, "discover_options", spy)
+    fits = {}
+    for m in (1, 8):
+        config = AtariConfig(max_episode_steps=40, noop_max=0, hidden_sizes=(8, 8, 8), num_demonstrations=3,
+                             demo_max_steps=40, options_num_cells=(8,), ddo_iterations=5, ddo_batch_size=None,
+                             ddo_lr=0.01, ddo_m_steps=m)
+        agent = _make_agent("Pooyan", config, 0, "actions")
+        (tmp_path / f"m{m}").mkdir()
+        _, meta = _phase2("Pooyan", config, 0, str(tmp_path / f"m{m}"), agent)
+        _close(agent)
+        fits[m] = meta["log_likelihood_per_step"]
+    assert seen == [1, 8]
+    assert fits[8] > fits[1] + 0.05, fits  # the same demonstrations and E-steps, 8 G-steps each: a closer fit
+    assert _config(["atari_preset=smoke", "atari.ddo_m_steps=4"]).atari.ddo_m_steps == 4
+    for bad in (0, 1.5, True):  # refused when the settings are read, not after phase 1
+        with pytest.raises(ValueError, match="ddo_m_steps must be a positive int"):
+            AtariConfig.from_dict({"ddo_m_steps": bad})

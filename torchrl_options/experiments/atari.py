@@ -122,7 +122,9 @@ class AtariConfig:
 
     Phases: ``phase1_episodes`` (DQN, actions), ``num_demonstrations`` greedy trajectories of at most
     ``demo_max_steps`` steps, DDO with ``num_options`` (``None``: the paper's count for the game) for
-    ``ddo_iterations``, then ``phase3_episodes`` for each condition.
+    ``ddo_iterations`` iterations of ``ddo_m_steps`` optimizer steps each (1: the paper's Expectation-Gradient;
+    more: a generalised EM that fits the demonstrations much more closely for the same E-steps, see
+    :func:`~torchrl_options.discover_options`), then ``phase3_episodes`` for each condition.
 
     DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
     ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
@@ -162,6 +164,7 @@ class AtariConfig:
     ddo_iterations: int = 500
     ddo_batch_size: int | None = 20
     ddo_lr: float = 1e-3
+    ddo_m_steps: int = 1
     # DQN
     hidden_sizes: tuple[int, ...] = (64, 64, 64)
     gamma: float = 0.85
@@ -190,6 +193,10 @@ class AtariConfig:
     option_frames: bool = True
     option_frames_max_steps: int = 400
     torch_threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.ddo_m_steps, int) or isinstance(self.ddo_m_steps, bool) or self.ddo_m_steps < 1:
+            raise ValueError(f"ddo_m_steps must be a positive int (optimizer steps per E-step), got {self.ddo_m_steps!r}.")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
@@ -427,6 +434,7 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         num_iterations=config.ddo_iterations,
         batch_size=config.ddo_batch_size,
         lr=config.ddo_lr,
+        m_steps=config.ddo_m_steps,
         device=config.device,
         seed=seed,
         progress=False,
