@@ -174,9 +174,9 @@ def _check_tol(tol: float | None, patience: int) -> None:
         raise ValueError(f"patience must be a positive int (iterations), got {patience!r}.")
 
 
-def _check_m_steps(m_steps: int) -> None:
+def _check_m_steps(m_steps: int, name: str = "m_steps") -> None:
     if not isinstance(m_steps, int) or isinstance(m_steps, bool) or m_steps < 1:
-        raise ValueError(f"m_steps must be a positive int (G-steps per E-step), got {m_steps!r}.")
+        raise ValueError(f"{name} must be a positive int (G-steps per E-step), got {m_steps!r}.")
 
 
 EStep = Callable[[TensorDictBase], "tuple[dict, Callable[[], torch.Tensor]]"]

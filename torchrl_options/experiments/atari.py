@@ -195,8 +195,9 @@ class AtariConfig:
     torch_threads: int | None = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.ddo_m_steps, int) or isinstance(self.ddo_m_steps, bool) or self.ddo_m_steps < 1:
-            raise ValueError(f"ddo_m_steps must be a positive int (optimizer steps per E-step), got {self.ddo_m_steps!r}.")
+        from torchrl_options.discovery.discover import _check_m_steps
+
+        _check_m_steps(self.ddo_m_steps, name="ddo_m_steps")  # refused when the settings are read, not after phase 1
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
