@@ -13,6 +13,7 @@ Run:
     python recipes/atari_ram.py preset=cpu-vec "conditions=[A,H1,H1g]"     # + options that act greedily
     python recipes/atari_ram.py preset=cpu-vec "conditions=[A,H1,H1i]"     # + primitive actions learned inside options
     python recipes/atari_ram.py preset=cores16-vec                        # cores16's budget batched, greedy eval, 12 seeds
+    python recipes/atari_ram.py preset=cpu-vec-rr                         # cpu-vec at DQN's usual replay ratio, 8 seeds
 
 Writes to ``out_dir``: ``results.csv`` (one row per episode and cell, re-runs skip finished cells),
 ``summary.md``, ``curves.png``, ``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.

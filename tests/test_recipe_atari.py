@@ -44,7 +44,7 @@ def _rows(path):
 
 
 def test_presets_compose():
-    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cores16", "cores16-vec", "gpu-hour", "paper"):
+    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cpu-vec-rr", "cores16", "cores16-vec", "gpu-hour", "paper"):
         cfg = _config([f"atari_preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
@@ -55,6 +55,12 @@ def test_presets_compose():
     batching = ["atari.num_envs=8", "atari.vector_env=true", "atari.frames_per_batch=400", "atari.updates_per_batch=16",
                 "atari.fused_adam=true", "atari.eval_every=30", "atari.eval_episodes=16"]
     assert dict(_config(["atari_preset=cores16-vec"]).atari) == dict(_config(["atari_preset=cores16", *batching]).atari)
+    # cpu-vec-rr: cpu-vec's budget at DQN's usual replay ratio, with greedy evaluation, nothing else changed
+    ratio = ["atari.updates_per_batch=100", "atari.hard_update_interval=500", "atari.eval_every=50",
+             "atari.eval_episodes=16"]
+    assert dict(_config(["atari_preset=cpu-vec-rr"]).atari) == dict(_config(["atari_preset=cpu-vec", *ratio]).atari)
+    assert dict(_config(["atari_preset=cpu-vec-rr"]).atari) != dict(_config(["atari_preset=cpu-vec"]).atari)
+    assert _config(["atari_preset=cpu-vec-rr"]).seeds == 8
     assert _config(["atari_preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
     # seeds: a count (0 .. n-1) or a list, e.g. to split a sweep over machines and join the results
     recipe = _recipe()
