@@ -28,7 +28,14 @@ from functools import partial
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_options.experiments import ResultsLog, plot_curves, run_sweep, summarize, summary_markdown
+from torchrl_options.experiments import (
+    check_run_settings,
+    plot_curves,
+    ResultsLog,
+    run_sweep,
+    summarize,
+    summary_markdown,
+)
 from torchrl_options.experiments.atari import (
     AtariConfig,
     atari_cells,
@@ -45,10 +52,12 @@ log = logging.getLogger("atari_ram")
 
 def run(cfg: DictConfig) -> list:
     """Runs the sweep described by ``cfg`` (the composed Hydra config), writes its outputs, returns the cells that ran
-    (finished cells found in ``results.csv`` are skipped)."""
+    (finished cells found in ``results.csv`` are skipped; an ``out_dir`` made with other ``atari`` settings is
+    refused unless ``allow_changed_settings``)."""
     config = AtariConfig.from_dict(OmegaConf.to_container(cfg.atari, resolve=True))
     out_dir = os.path.abspath(cfg.out_dir)
-    os.makedirs(out_dir, exist_ok=True)
+    # finished cells are skipped and phase-1 checkpoints reused: only with the settings they were made with
+    check_run_settings(out_dir, {"atari": config.cell_settings()}, allow_changes=bool(cfg.allow_changed_settings))
     with open(os.path.join(out_dir, "config.yaml"), "w") as f:
         f.write(OmegaConf.to_yaml(cfg, resolve=True))
     results = ResultsLog(os.path.join(out_dir, "results.csv"))

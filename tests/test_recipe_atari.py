@@ -1,6 +1,7 @@
 """The Atari RAM recipe end to end with the smoke preset: outputs, resuming, and the Ray backend."""
 import csv
 import importlib.util
+import json
 import os
 
 import numpy as np
@@ -110,6 +111,20 @@ def test_smoke_end_to_end_and_resume(tmp_path):
     assert recipe.run(cfg) == []
     assert _rows(tmp_path / "results.csv") == rows
     assert atari_comparison(ResultsLog(tmp_path / "results.csv"), phase1_episodes=p1)[0].num_seeds == 1
+    # ... but not with other settings: its finished cells and phase-1 checkpoint were made with the old ones
+    out = f"out_dir={tmp_path}"
+    longer = ["atari.phase1_episodes=5", "atari.phase3_episodes=4"]
+    with pytest.raises(ValueError, match=r"atari.phase1_episodes: 3 there, 5 now.*atari.phase3_episodes: 3 there, 4 now"):
+        recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *longer]))
+    assert _rows(tmp_path / "results.csv") == rows
+    # settings of how cells run (checkpoints, greedy evaluation, device) may change; so may seeds and conditions
+    same = ["atari.checkpoint_every=7", "atari.eval_every=2", "atari.fused_adam=true", "atari.torch_threads=1"]
+    assert recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *same])) == []
+    # allow_changed_settings mixes them knowingly, and records the new settings
+    mixed = ["atari.lr=0.01", "allow_changed_settings=true"]
+    assert recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *mixed])) == []
+    settings = json.loads((tmp_path / "settings.json").read_text())
+    assert settings["atari.lr"] == 0.01 and settings["atari.phase1_episodes"] == 3 and "atari.device" not in settings
 
 
 def test_fused_adam_setting():

@@ -62,6 +62,14 @@ def test_two_rooms_recipe_resumes(tmp_path):
     assert sorted(ran) == sorted(["supervised-A-seed0", "supervised-O-seed0", "supervised-AO-seed0"])  # A not redone
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "O", "AO")])
     assert [p.name for p in (out / "pictures").glob("*.png")] == ["supervised-seed0-K2-uniform.png"]
+    # resuming with other settings is refused (the finished cells were made with the old ones), naming them;
+    # other seeds or conditions, or how cells run, are not settings of the cells
+    with pytest.raises(ValueError, match=r"dqn.lr: [0-9.e-]+ there, 0.5 now.*episodes: \d+ there, 7 now"):
+        recipe.run(_cfg("two_rooms", out, "dqn.lr=0.5", "episodes=7"))
+    assert recipe.run(_cfg("two_rooms", out, "seeds=[5]", "conditions_to_run=[A]", "stop_after_cells=0",
+                           "backend=local", "summary.final_window=3")) is None  # fmt: skip
+    assert recipe.run(_cfg("two_rooms", out, "dqn.lr=0.5", "allow_changed_settings=true", "stop_after_cells=0",
+                           "seeds=[5]")) is None  # fmt: skip
 
 
 def test_three_rooms_recipe(tmp_path):

@@ -1,5 +1,7 @@
-"""What the recipes share: resumable results, summaries with bootstrap intervals, learning-curve plots."""
+"""What the recipes share: resumable results (and the settings they were made with), summaries with bootstrap
+intervals, learning-curve plots."""
 from torchrl_options.experiments.plotting import plot_curves
+from torchrl_options.experiments.run_settings import check_run_settings
 from torchrl_options.experiments.sweep import Cell, CellResult, run_sweep
 from torchrl_options.experiments.results import (
     bootstrap_ci,
@@ -14,6 +16,7 @@ from torchrl_options.experiments.results import (
 __all__ = [
     "bootstrap_ci",
     "Cell",
+    "check_run_settings",
     "CellResult",
     "run_sweep",
     "ConditionSummary",

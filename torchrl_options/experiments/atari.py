@@ -42,7 +42,7 @@ from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from functools import partial
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -210,6 +210,25 @@ class AtariConfig:
             if key in d and d[key] is not None:
                 d[key] = tuple(d[key])
         return cls(**d)
+
+    #: fields that change how a cell runs (device, threads, checkpoints, pictures, greedy evaluation, which leaves
+    #: training's random numbers untouched, fused Adam, the same algorithm), not the episodes it records
+    RUN_ONLY_FIELDS: ClassVar[tuple[str, ...]] = (
+        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_every", "checkpoint_buffer", "eval_every",
+        "eval_episodes", "option_frames", "option_frames_max_steps",
+    )  # fmt: skip
+
+    def cell_settings(self) -> dict[str, Any]:
+        """The settings that define what a cell computes: every field but :attr:`RUN_ONLY_FIELDS`. The recipe records
+        them in its ``out_dir`` and refuses to resume it with others
+        (:func:`~torchrl_options.experiments.run_settings.check_run_settings`).
+
+        Examples:
+            >>> settings = AtariConfig(device="cuda").cell_settings()
+            >>> settings["phase1_episodes"], "device" in settings
+            (1000, False)
+        """
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.RUN_ONLY_FIELDS}
 
     def env_kwargs(self) -> dict[str, Any]:
         return dict(

@@ -36,6 +36,7 @@ from torchrl.envs.utils import step_mdp
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
 from torchrl_options.discovery import discover_options, load_options, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
+from torchrl_options.experiments.run_settings import check_run_settings
 from torchrl_options.experiments.sweep import Cell, CellResult
 from torchrl_options.hierarchy import discover_hierarchy, load_hierarchy, OptionHierarchy, save_hierarchy
 
@@ -435,12 +436,23 @@ def reach_table(log, target: float, window: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Recipe keys that choose which cells run, how they run or how the summary reads: a run may be resumed with
+#: other values of these; every other key defines the cells (:func:`check_run_settings`).
+RUN_ONLY_SETTINGS = (
+    "out_dir", "seeds", "settings_to_run", "conditions_to_run", "backend", "num_workers", "ray_address",
+    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "checkpoint_every", "scale",
+    "allow_changed_settings",
+)  # fmt: skip
+
+
 def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
     """What every GridWorld recipe does: the sweep over (setting, condition, seed), then the outputs.
 
     Writes ``results.csv``, ``summary.md``, ``curves.png`` and ``pictures/*.png`` (the discovered options of
     the first seed) to ``cfg["out_dir"]``; returns the summary (``None`` when stopped early by
-    ``stop_after_cells``, which the tests use to interrupt a run).
+    ``stop_after_cells``, which the tests use to interrupt a run). A run resumed into an ``out_dir`` whose
+    recorded settings differ (any key but :data:`RUN_ONLY_SETTINGS`) is refused, unless
+    ``cfg["allow_changed_settings"]``.
     """
     import functools
 
@@ -449,7 +461,7 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
 
     cfg = dict(cfg)
     out = Path(cfg["out_dir"])
-    out.mkdir(parents=True, exist_ok=True)
+    check_run_settings(out, cfg, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(cfg.get("allow_changed_settings", False)))
     log = ResultsLog(out / "results.csv")
     seeds = list(range(int(cfg["seeds"]))) if isinstance(cfg["seeds"], int) else list(cfg["seeds"])
     cells = [Cell(s, c, seed) for s in cfg["settings_to_run"] for c in cfg["conditions_to_run"] for seed in seeds]

@@ -15,6 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchrl_options.experiments.run_settings import (
+    describe_differences,
+    read_run_settings,
+    settings_differences,
+    write_run_settings,
+)
+
 __all__ = [
     "merge_results",
     "ResultsLog",
@@ -133,7 +140,10 @@ def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence
 
     Each (setting, condition, seed) cell of a source is appended whole unless the destination already has it;
     a cell found twice with the same episodes is kept once, a cell found twice with different episodes is an
-    error (two runs of the same cell that disagree: nothing is written). Sources are read in order.
+    error (two runs of the same cell that disagree: nothing is written). Sources are read in order. Where runs
+    recorded their settings (``settings.json`` beside ``results.csv``, see
+    :func:`~torchrl_options.experiments.run_settings.check_run_settings`), they must agree, and the destination
+    gets them.
 
     Args:
         destination (str, PathLike or ResultsLog): the merged ``results.csv`` (created if missing).
@@ -143,7 +153,8 @@ def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence
         The cells added to ``destination``, in the order they were appended.
 
     Raises:
-        ValueError: an empty ``sources``, or a cell whose episodes differ between two files (named).
+        ValueError: an empty ``sources``, a cell whose episodes differ between two files (named), or two runs whose
+            recorded settings differ (each differing setting named).
         FileNotFoundError: a missing source file (named).
 
     Examples:
@@ -159,6 +170,7 @@ def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence
     if isinstance(sources, (str, os.PathLike)) or not len(sources):
         raise ValueError(f"sources must be a non-empty list of results.csv paths, got {sources!r}.")
     dest = destination if isinstance(destination, ResultsLog) else ResultsLog(destination)
+    settings = _agreed_settings([dest.path, *(os.fspath(s) for s in sources)])
     cells = {key: (*cell, dest.path) for key, cell in _cells(dest).items()}
     new: dict[tuple[str, str, int], tuple[list[float], list[int | None], str]] = {}
     for source in sources:
@@ -177,8 +189,30 @@ def merge_results(destination: str | os.PathLike | ResultsLog, sources: Sequence
     dest.append_cells(
         (*key, returns, None if any(f is None for f in frames) else frames) for key, (returns, frames, _) in new.items()
     )
+    dest_dir = os.path.dirname(os.path.abspath(dest.path))
+    if settings is not None and read_run_settings(dest_dir) is None:
+        write_run_settings(dest_dir, settings)
     logger.info("merged %d cells into %s", len(new), dest.path)
     return list(new)
+
+
+def _agreed_settings(paths: Sequence[str]) -> dict | None:
+    """The settings recorded beside these ``results.csv`` files (None where none were), which must agree."""
+    agreed, agreed_from = None, None
+    for path in paths:
+        settings = read_run_settings(os.path.dirname(os.path.abspath(path)))
+        if settings is None:
+            continue
+        if agreed is None:
+            agreed, agreed_from = settings, path
+            continue
+        diffs = settings_differences(agreed, settings)
+        if diffs:
+            raise ValueError(
+                f"{agreed_from!r} and {path!r} come from runs with other settings: "
+                f"{describe_differences(diffs, 'in the first', 'in the second')}. Merge only runs of one experiment."
+            )
+    return agreed
 
 
 def _cells(log: ResultsLog) -> dict[tuple[str, str, int], tuple[list[float], list[int | None]]]:
