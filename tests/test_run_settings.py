@@ -1,6 +1,7 @@
 """Recorded run settings: resuming an out_dir with other settings is refused, naming each one."""
 import json
 import logging
+from pathlib import Path
 
 import pytest
 
@@ -60,6 +61,9 @@ def test_allow_changes_logs_and_records_the_new_settings(tmp_path, caplog):
 def test_ignore_covers_a_key_and_what_is_below_it_only():
     flat = flatten_settings({"scale": {"name": "tiny", "four_rooms": {"seeds": 3}}, "scales": 1})
     assert flat == {"scale.name": "tiny", "scale.four_rooms.seeds": 3, "scales": 1}
+    assert flatten_settings({"scale": {"name": "tiny"}, "scales": 1}, ignore=["scale"]) == {"scales": 1}
+    # ignored keys are never serialised (a Path out_dir, say)
+    assert flatten_settings({"out_dir": Path("/tmp"), "episodes": 3}, ignore=["out_dir"]) == {"episodes": 3}
     assert settings_differences({"scale": {"name": "a"}, "scales": 1}, {"scale": {"name": "b"}, "scales": 1}) == {
         "scale.name": ("a", "b")
     }

@@ -30,18 +30,22 @@ logger = logging.getLogger(__name__)
 SETTINGS_FILE = "settings.json"
 
 
-def flatten_settings(settings: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``, with values as JSON gives them back (tuples become lists).
+def flatten_settings(settings: Mapping[str, Any], *, ignore: Iterable[str] = (), prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``, with values as JSON gives them back (tuples become lists), leaving
+    out the dotted names in ``ignore`` and everything below them.
 
     Examples:
-        >>> flatten_settings({"dqn": {"lr": 0.01, "hidden_sizes": (2,)}, "episodes": 200})
+        >>> flatten_settings({"dqn": {"lr": 0.01, "hidden_sizes": (2,)}, "episodes": 200, "seeds": 3}, ignore=["seeds"])
         {'dqn.lr': 0.01, 'dqn.hidden_sizes': [2], 'episodes': 200}
     """
+    ignore = tuple(ignore)
     flat: dict[str, Any] = {}
     for key, value in settings.items():
         name = f"{prefix}{key}"
+        if _ignored(name, ignore):
+            continue
         if isinstance(value, Mapping) and value:
-            flat.update(flatten_settings(value, prefix=f"{name}."))
+            flat.update(flatten_settings(value, ignore=ignore, prefix=f"{name}."))
         else:
             flat[name] = json.loads(json.dumps(value))
     return flat
@@ -143,12 +147,9 @@ def check_run_settings(
         ValueError: out_dir ... holds a run made with other settings: episodes: 200 there, 1000 now. ...
     """
     os.makedirs(out_dir, exist_ok=True)
-    ignore = tuple(ignore)
-    now = {k: v for k, v in flatten_settings(settings).items() if not _ignored(k, ignore)}
+    now = flatten_settings(settings, ignore=ignore)
     recorded = read_run_settings(out_dir)
-    diffs = {} if recorded is None else settings_differences(
-        {k: v for k, v in recorded.items() if not _ignored(k, ignore)}, now
-    )
+    diffs = {} if recorded is None else settings_differences(flatten_settings(recorded, ignore=ignore), now)
     if diffs:
         message = (
             f"out_dir {os.fspath(out_dir)!r} holds a run made with other settings: {describe_differences(diffs)}. "
