@@ -5,6 +5,7 @@ from torchrl_options.discovery.discover import (
     discover_options,
     DiscoveryResult,
     fit_ddo,
+    PAPER_SETTINGS,
 )
 from torchrl_options.discovery.initialization import kmeans, pretrain_on_clusters
 from torchrl_options.discovery.serialization import load_options, save_options
@@ -18,6 +19,7 @@ __all__ = [
     "fit_ddo",
     "kmeans",
     "load_options",
+    "PAPER_SETTINGS",
     "pretrain_on_clusters",
     "save_options",
     "TabulatedDDO",

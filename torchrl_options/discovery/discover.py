@@ -16,11 +16,26 @@ from torchrl_options.discovery.tabulated import TabulatedDDO
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP
 from torchrl_options.objectives import DDOLoss
 
-__all__ = ["DiscoveryResult", "as_trajectory_batch", "converged_at", "discover_options", "fit_ddo", "minibatch"]
+__all__ = [
+    "DiscoveryResult",
+    "PAPER_SETTINGS",
+    "as_trajectory_batch",
+    "converged_at",
+    "discover_options",
+    "fit_ddo",
+    "minibatch",
+]
 
 logger = logging.getLogger(__name__)
 
 _MASK = ("collector", "mask")
+
+PAPER_SETTINGS: dict = dict(
+    num_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None, init="random"
+)
+"""The settings of the paper's four-rooms experiment (one hidden layer of 2 tanh units, plain Expectation-Gradient,
+one start), as ``discover_options`` keyword arguments: ``discover_options(data, K, **PAPER_SETTINGS)``. The
+GridWorld recipes use them; the defaults of :func:`discover_options` are chosen on the planted suite instead."""
 
 
 @dataclass
