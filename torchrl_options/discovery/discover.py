@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
+from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters
 from torchrl_options.discovery.tabulated import TabulatedDDO
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP
@@ -29,6 +30,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _MASK = ("collector", "mask")
+
+DEFAULT_RESTARTS = 4
+"""Starts drawn by :func:`discover_options` when ``restarts`` is left at ``None`` (and fresh modules can be drawn)."""
 
 PAPER_SETTINGS: dict = dict(
     num_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None, init="random"
@@ -51,6 +55,11 @@ class DiscoveryResult:
             ``num_iterations``; ``None`` without ``tol``.
         restart_log_likelihoods (list of float): with ``restarts > 1``, each start's log-likelihood per step after
             its ``restart_iterations`` (the best one was kept); empty otherwise.
+        option_usage (list of float): per option, the posterior share of the demonstrations' steps it is active
+            at (:func:`~torchrl_options.discovery.option_diagnostics`).
+        duplicate_options (list of tuple): pairs of options that act and terminate alike on the demonstrations.
+        warnings (list of str): signs the run may be stuck in a local optimum (an unused option, duplicates, starts
+            that disagree), also logged as warnings.
     """
 
     options: TensorDictModuleBase
@@ -58,6 +67,9 @@ class DiscoveryResult:
     history: list[dict] = field(default_factory=list)
     converged: bool | None = None
     restart_log_likelihoods: list[float] = field(default_factory=list)
+    option_usage: list[float] = field(default_factory=list)
+    duplicate_options: list[tuple[int, int]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def final_log_likelihood_per_step(self) -> float:
@@ -336,19 +348,19 @@ def discover_options(
     action_space: str = "categorical",
     obs_keys: NestedKey | Sequence[NestedKey] = "observation",
     action_key: NestedKey = "action",
-    num_cells: int | Sequence[int] = 2,
+    num_cells: int | Sequence[int] = 32,
     activation: str = "tanh",
     architecture: str = "separate",
     init: str = "random",
-    num_iterations: int = 500,
-    m_steps: int = 1,
-    tol: float | None = None,
+    num_iterations: int = 400,
+    m_steps: int = 5,
+    tol: float | None = 1e-4,
     patience: int = 20,
-    restarts: int = 1,
-    restart_iterations: int = 50,
+    restarts: int | None = None,
+    restart_iterations: int = 40,
     batch_size: int | None = None,
     optimizer: torch.optim.Optimizer | Callable[..., torch.optim.Optimizer] | None = None,
-    lr: float = 1e-2,
+    lr: float = 0.03,
     lr_scheduler: Callable[[torch.optim.Optimizer], torch.optim.lr_scheduler.LRScheduler] | None = None,
     device: torch.device | str | None = None,
     seed: int | None = None,
@@ -440,15 +452,20 @@ def discover_options(
         raise ValueError(f"num_iterations must be an int >= 0, got {num_iterations!r}.")
     _check_m_steps(m_steps)
     _check_tol(tol, patience)
+    fresh_modules = options is None and not isinstance(optimizer, torch.optim.Optimizer) and isinstance(meta_control, str)
+    if restarts is None:
+        # several short starts are the default whenever fresh modules can be drawn for each; a user's own modules
+        # (or optimizer instance) are trained once
+        restarts = DEFAULT_RESTARTS if fresh_modules and num_iterations >= DEFAULT_RESTARTS * restart_iterations else 1
     if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 1:
-        raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
+        raise ValueError(f"restarts must be a positive int (or None for the default), got {restarts!r}.")
     if restarts > 1:
         if not isinstance(restart_iterations, int) or not 1 <= restart_iterations <= num_iterations:
             raise ValueError(
                 f"restart_iterations must be an int in [1, num_iterations={num_iterations}] when restarts > 1, got "
                 f"{restart_iterations!r}."
             )
-        if options is not None or isinstance(optimizer, torch.optim.Optimizer) or not isinstance(meta_control, str):
+        if not fresh_modules:
             raise ValueError(
                 f"restarts={restarts} draws fresh modules for each start: it needs options=None, meta_control "
                 "'uniform' or 'learned', and an optimizer factory rather than an optimizer instance."
@@ -494,10 +511,15 @@ def discover_options(
                     architecture=architecture, in_keys=obs_keys,
                 )
             else:
-                action_dim = data.get(action_key).shape[-1]
+                actions = data.get(action_key)[mask]
+                action_dim = actions.shape[-1]
+                # start every option at the demonstrations' own action spread (not 1.0, which can dwarf it and
+                # leave all options alike): a symmetric start the likelihood cannot leave is a local optimum
+                spread = float(actions.float().std(0).mean()) if actions.shape[0] > 1 else 1.0
+                init_scale = min(max(spread, 1e-2), 1.0) if spread == spread else 1.0
                 options = GaussianOptionsMLP(
                     in_features, action_dim, num_options, num_cells=num_cells, activation=activation,
-                    in_keys=obs_keys,
+                    in_keys=obs_keys, init_scale=init_scale, min_scale=min(1e-3, init_scale / 10),
                 )
         options = options.to(device)
         if meta_control == "uniform":
@@ -570,12 +592,19 @@ def discover_options(
         if not stopped and num_iterations > len(history):
             history = history + train(loss_module, opt, sched, table, num_iterations - len(history), "DDO")
     options, meta_module = loss_module.options, loss_module.meta_control
+    with torch.no_grad():
+        diagnostics = option_diagnostics(loss_module.log_probabilities(data))
+    disagreement = restart_disagreement(restart_lls)
+    warnings = diagnostics.warnings + ([disagreement] if disagreement else [])
+    for message in warnings:
+        logger.warning("discover_options: %s", message)
     if return_info:
         converged = None
         if tol is not None:
             converged = converged_at([h["log_likelihood_per_step"] for h in history], tol, patience) is not None
         return DiscoveryResult(
             options=options, meta_control=meta_module, history=history, converged=converged,
-            restart_log_likelihoods=restart_lls,
+            restart_log_likelihoods=restart_lls, option_usage=diagnostics.usage,
+            duplicate_options=diagnostics.duplicates, warnings=warnings,
         )  # fmt: skip
     return options

@@ -455,6 +455,8 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         batch_size=config.ddo_batch_size,
         lr=config.ddo_lr,
         m_steps=config.ddo_m_steps,
+        restarts=1,  # the paper's protocol: one start, every iteration run
+        tol=None,
         device=config.device,
         seed=seed,
         progress=False,

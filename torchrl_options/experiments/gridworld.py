@@ -34,7 +34,7 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
-from torchrl_options.discovery import discover_options, load_options, save_options
+from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.run_settings import check_run_settings
 from torchrl_options.experiments.sweep import Cell, CellResult
@@ -138,14 +138,21 @@ def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
 
 # ------------------------------------------------------------------------------------------------ discovery
 def _discovery_kwargs(discovery: Mapping[str, Any]) -> dict[str, Any]:
-    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery."""
+    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery.
+
+    What the section leaves out is the paper's setting (:data:`~torchrl_options.discovery.PAPER_SETTINGS`), not
+    :func:`~torchrl_options.discover_options`'s default, so that the recipes reproduce the paper's protocol.
+    """
     return dict(
         num_actions=4,
-        num_cells=discovery.get("num_cells", 2),
-        activation=discovery.get("activation", "tanh"),
-        init=discovery.get("init", "random"),
+        num_cells=discovery.get("num_cells", PAPER_SETTINGS["num_cells"]),
+        activation=discovery.get("activation", PAPER_SETTINGS["activation"]),
+        init=discovery.get("init", PAPER_SETTINGS["init"]),
         batch_size=discovery.get("batch_size"),
-        lr=discovery.get("lr", 1e-2),
+        lr=discovery.get("lr", PAPER_SETTINGS["lr"]),
+        m_steps=discovery.get("m_steps", PAPER_SETTINGS["m_steps"]),
+        restarts=discovery.get("restarts", PAPER_SETTINGS["restarts"]),
+        tol=discovery.get("tol", PAPER_SETTINGS["tol"]),
     )
 
 
