@@ -249,3 +249,247 @@ class TestBadInput:
     def test_wrong_batch_dims(self):
         with pytest.raises(ValueError, match=r"\[B, T\]"):
             DDOLoss(OptionsMLP(3, 4, 2))(_trajectories().unsqueeze(0))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# TorchRL's LossModule contract, for both DDO losses (in the style of TorchRL's own loss tests)
+
+from tensordict.nn import TensorDictParams  # noqa: E402
+
+from torchrl_options.hierarchy import HierarchicalDDOLoss, OptionHierarchy  # noqa: E402
+from torchrl_options.hierarchy.discover import HierarchicalEStep  # noqa: E402
+from torchrl_options.objectives import DDOLossBase  # noqa: E402
+
+
+def _make_loss(kind, *, meta=False, seed=0, **kwargs):
+    """A small loss of each kind over 3 observation features and 4 primitive actions."""
+    torch.manual_seed(seed)
+    if kind == "flat":
+        return DDOLoss(OptionsMLP(3, 4, 2, num_cells=4), MetaControlMLP(3, 2, num_cells=4) if meta else None, **kwargs)
+    lower = OptionHierarchy(4, [OptionsMLP(3, 4, 2, num_cells=4)])
+    return HierarchicalDDOLoss(
+        OptionsMLP(3, 6, 2, num_cells=4), lower, MetaControlMLP(3, 2, num_cells=4) if meta else None, **kwargs
+    )
+
+
+def _flat_params(module):
+    return torch.cat([p.detach().reshape(-1) for p in module.parameters()])
+
+
+@pytest.mark.parametrize("kind", ["flat", "hierarchical"])
+class TestLossModuleContract:
+    def test_is_a_loss_module_with_keys(self, kind):
+        from torchrl.objectives import LossModule
+
+        loss = _make_loss(kind, meta=True)
+        assert isinstance(loss, LossModule) and isinstance(loss, DDOLossBase)
+        for key in ["observation", ("next", "observation"), "action", ("collector", "mask"), ("next", "terminated")]:
+            assert key in loss.in_keys
+        assert loss.out_keys[:2] == ["loss_ddo", "log_likelihood_per_step"]
+        assert set(loss(_trajectories()).keys()) == set(loss.out_keys)
+        loss.set_keys(action="expert_action", mask="valid", terminal="done")
+        assert {"expert_action", "valid", "done"} <= set(loss.in_keys) and "action" not in loss.in_keys
+        loss.set_keys(action=None)  # back to the default
+        assert loss.tensor_keys.action == "action"
+        with pytest.raises(ValueError, match="not an accepted tensordict key"):
+            loss.set_keys(actions="a")
+
+    def test_same_keyword_arguments(self, kind):
+        import inspect
+
+        def keywords(cls):
+            return {n for n, p in inspect.signature(cls.__init__).parameters.items() if p.kind == p.KEYWORD_ONLY}
+
+        assert keywords(HierarchicalDDOLoss) - {"num_actions"} == keywords(DDOLoss)
+        assert {"backend", "diagnostics", "reduction", "terminal_at_end", "action_space"} <= keywords(DDOLoss)
+        loss = _make_loss(kind, diagnostics=False, backend="auto")
+        out = loss(_trajectories())
+        assert set(out.keys()) == {"loss_ddo", "log_likelihood_per_step"} == set(loss.out_keys)
+        loss.diagnostics = True
+        assert "option_entropy" in loss(_trajectories()).keys()
+
+    def test_networks_are_functional(self, kind):
+        loss = _make_loss(kind, meta=True)
+        assert loss.functional
+        assert isinstance(loss.options_params, TensorDictParams) and isinstance(loss.meta_control_params, TensorDictParams)
+        # the parameters are the modules' own: an optimizer over loss.parameters() trains loss.options
+        own = {id(p) for p in loss.options.parameters()} | {id(p) for p in loss.meta_control.parameters()}
+        assert {id(p) for p in loss.parameters()} == own
+        data = _trajectories()
+        ref = loss(data)["loss_ddo"].detach()
+        net = loss.get_stateful_net("options")
+        assert net is not loss.options  # a copy
+        for p in net.parameters():
+            p.data.add_(0.5)
+        loss.from_stateful_net("options", net)
+        changed = loss(data)["loss_ddo"].detach()
+        assert not torch.allclose(changed, ref)
+        torch.testing.assert_close(_flat_params(loss.options), _flat_params(net))
+        meta = loss.get_stateful_net("meta_control", copy=True)
+        meta_params = _flat_params(meta)
+        torch.testing.assert_close(meta_params, _flat_params(loss.meta_control))
+
+    def test_reset_parameters(self, kind):
+        loss = _make_loss(kind, meta=True)
+        before = _flat_params(loss.options).clone(), _flat_params(loss.meta_control).clone()
+        lower = _flat_params(loss.lower_levels).clone() if kind == "hierarchical" else None
+        loss.reset_parameters_recursive()
+        assert not torch.allclose(_flat_params(loss.options), before[0])
+        assert not torch.allclose(_flat_params(loss.meta_control), before[1])
+        if lower is not None:  # the fixed lower levels are not the loss's parameters
+            torch.testing.assert_close(_flat_params(loss.lower_levels), lower)
+
+    def test_state_dict_round_trip(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True, seed=0)
+        other = _make_loss(kind, meta=True, seed=1)
+        state = loss.state_dict()
+        assert any(k.startswith("options_params.") for k in state)
+        assert any(k.startswith("meta_control_params.") for k in state)
+        if kind == "hierarchical":
+            assert any(k.startswith("lower_levels.") for k in state)
+        assert not torch.allclose(other(data)["loss_ddo"], loss(data)["loss_ddo"])
+        other.load_state_dict(state)
+        torch.testing.assert_close(other(data)["loss_ddo"], loss(data)["loss_ddo"])
+
+    def test_dtype_cast(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True)
+        ref = loss(data)
+        loss = loss.double()
+        assert all(p.dtype == torch.float64 for p in loss.options_params.values(True, True))
+        if kind == "hierarchical":
+            assert all(p.dtype == torch.float64 for p in loss.lower_levels.parameters())
+        out = loss(data)
+        assert out["loss_ddo"].dtype == torch.float64
+        torch.testing.assert_close(out["loss_ddo"].float(), ref["loss_ddo"], rtol=1e-4, atol=1e-5)
+
+    def test_every_network_is_registered(self, kind):
+        """What module casts (.to(device), .double()) and state_dict() walk: every network, the fixed levels too."""
+        loss = _make_loss(kind, meta=True)
+        modules = list(loss.modules())
+        assert any(m is loss.options_params for m in modules) and any(m is loss.meta_control_params for m in modules)
+        if kind == "hierarchical":
+            assert any(m is loss.lower_levels for m in modules)
+            assert loss.lower_levels.num_levels == 1 and loss.level == 2
+            # ... but they are not trained: parameters() leaves them out
+            lower = {id(p) for p in loss.lower_levels.parameters()}
+            assert lower and not lower & {id(p) for p in loss.parameters()}
+            named = dict(loss.named_parameters())
+            assert named and not any(k.startswith("lower_levels.") for k in named)
+
+    @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+    def test_cuda(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True)
+        ref = loss(data)["loss_ddo"]
+        out = loss.to("cuda")(data.to("cuda"))["loss_ddo"]
+        torch.testing.assert_close(out.cpu(), ref.detach(), rtol=1e-4, atol=1e-5)
+
+    def test_keyword_call(self, kind):
+        data = _trajectories(lengths=[12, 9, 5, 1])
+        loss = _make_loss(kind)
+        ref = loss(data)
+        out = loss(
+            observation=data["observation"],
+            action=data["action"],
+            next_observation=data["next", "observation"],
+            next_terminated=data["next", "terminated"],
+            collector_mask=data["collector", "mask"],
+        )
+        assert isinstance(out, tuple) and len(out) == len(loss.out_keys)
+        for key, value in zip(loss.out_keys, out):
+            torch.testing.assert_close(value, ref[key])
+        loss.select_out_keys("loss_ddo")
+        single = loss(observation=data["observation"], action=data["action"],
+                      next_observation=data["next", "observation"])  # fmt: skip
+        assert single.shape == ()
+
+    def test_loss_mask_key(self, kind):
+        """The issue's reproduction: a 6 + 3 step batch whose padding is marked in ("my", "valid") only."""
+        torch.manual_seed(0)
+        full = _trajectories(B=2, T=6).exclude(("collector", "mask"))
+        full["next", "terminated"][:] = False
+        valid = torch.tensor([[True] * 6, [True] * 3 + [False] * 3])
+        full["my", "valid"] = valid
+        loss = _make_loss(kind)
+        unmasked = loss(full)["loss_ddo"]
+        parts = [loss(full[:1])["loss_ddo"] * 6, loss(full[1:, :3])["loss_ddo"] * 3]
+        expected = sum(parts) / 9
+        loss.loss_mask_key = ("my", "valid")
+        assert ("my", "valid") in loss.in_keys and loss.mask_keys == [("collector", "mask"), ("my", "valid")]
+        # padding with non-finite values and out-of-range actions is ignored, gradients stay finite
+        full["observation"][1, 3:] = float("nan")
+        full["next", "observation"][1, 3:] = float("inf")
+        full["action"][1, 3:] = 99
+        out = loss(full)["loss_ddo"]
+        torch.testing.assert_close(out, expected)
+        assert not torch.allclose(out, unmasked)
+        out.backward()
+        assert all(torch.isfinite(p.grad).all() for p in loss.parameters())
+        # None: only tensor_keys.mask (absent here) -> the NaN padding now counts and is refused
+        loss.loss_mask_key = None
+        assert loss.mask_keys == [("collector", "mask")]
+        with pytest.raises(ValueError, match="NaN"):
+            loss(full)
+        # "auto" reads TorchRL's own masks: ("collector", "mask") and "shifted_valid"
+        loss.loss_mask_key = "auto"
+        full["shifted_valid"] = full.pop(("my", "valid")).unsqueeze(-1)
+        torch.testing.assert_close(loss(full)["loss_ddo"], expected)
+        # several masks: a step is valid where all of them say so
+        full["collector", "mask"] = torch.tensor([[True] * 5 + [False], [True] * 6])
+        both = loss(full)["loss_ddo"]
+        torch.testing.assert_close(both, (loss(full[:1, :5])["loss_ddo"] * 5 + parts[1]) / 8)
+        with pytest.raises(ValueError, match="loss_mask_key"):
+            loss.loss_mask_key = 3
+
+    def test_one_synchronisation_per_check(self, kind, monkeypatch):
+        """log_probabilities checks the batch with one read-back (tolist), no item()/bool() on tensors."""
+        data = _trajectories(lengths=[12, 9, 5, 1])
+        loss = _make_loss(kind, meta=True)
+        calls = []
+        for name in ("tolist", "item", "__bool__"):
+            original = getattr(torch.Tensor, name)
+
+            def counted(self, *args, _name=name, _original=original, **kwargs):
+                calls.append(_name)
+                return _original(self, *args, **kwargs)
+
+            monkeypatch.setattr(torch.Tensor, name, counted)
+        loss.log_probabilities(data)
+        monkeypatch.undo()
+        assert calls == ["tolist"]
+
+
+def test_hierarchical_e_step_checks_and_runs_the_recursion_once(monkeypatch):
+    """On logged iterations too (diagnostics on): one log_probabilities (one check), one recursion, and the record
+    equals the loss's outputs."""
+    import torchrl_options.hierarchy.loss as hloss
+
+    data = _trajectories(lengths=[12, 9, 5, 1])
+    loss = _make_loss("hierarchical", meta=True)
+    expected = loss(data)
+    calls = {"log_probabilities": 0, "recursion": 0}
+    log_probabilities, recursion = loss.log_probabilities, hloss.hierarchical_forward_backward
+
+    def counted_log_probabilities(td):
+        calls["log_probabilities"] += 1
+        return log_probabilities(td)
+
+    def counted_recursion(*args, **kwargs):
+        calls["recursion"] += 1
+        return recursion(*args, **kwargs)
+
+    monkeypatch.setattr(loss, "log_probabilities", counted_log_probabilities)
+    monkeypatch.setattr(hloss, "hierarchical_forward_backward", counted_recursion)
+    record, objective = HierarchicalEStep(loss)(data)
+    assert calls == {"log_probabilities": 1, "recursion": 1}
+    assert set(record) == set(expected.keys())
+    for key, value in record.items():
+        torch.testing.assert_close(value, expected[key].detach(), rtol=1e-5, atol=1e-6)
+    # the objective's gradient is the loss's gradient (the Expectation-Gradient identity)
+    params = list(loss.parameters())
+    g_loss = torch.autograd.grad(expected["loss_ddo"], params)
+    g_objective = torch.autograd.grad(objective(), params)
+    for a, b in zip(g_loss, g_objective):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)

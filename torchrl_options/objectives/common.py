@@ -10,6 +10,7 @@ reductions and the posterior diagnostics.
 from __future__ import annotations
 
 import math
+from copy import deepcopy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -288,8 +289,8 @@ def ddo_diagnostics(
         >>> u = torch.tensor([[[1.0, 0.0], [0.5, 0.5]]])
         >>> v = torch.tensor([[[1.0, 0.0], [0.0, 0.5]]])
         >>> d = ddo_diagnostics(u, v, torch.full((1, 2, 2), 0.25), torch.tensor(2))
-        >>> d["option_duration"].item(), round(d["option_entropy"].item(), 4)
-        (1.3333333730697754, 0.5623)
+        >>> round(d["option_duration"].item(), 4), round(d["option_entropy"].item(), 4)
+        (1.3333, 0.5623)
     """
     with torch.no_grad():
         usage = u.sum((0, 1)) / n_steps
@@ -514,6 +515,26 @@ class DDOLossBase(LossModule):
     @in_keys.setter
     def in_keys(self, values) -> None:
         self._in_keys = values
+
+    def get_stateful_net(self, network_name: str, copy: bool | None = None) -> TensorDictModuleBase:
+        """A stateful version of ``options`` or ``meta_control`` holding the loss's parameters.
+
+        As :meth:`torchrl.objectives.LossModule.get_stateful_net`, but the parameters are written into the module's
+        own tensors (in place), so that ``net.parameters()`` are the ones its forward reads (TorchRL's version swaps
+        them in, which modules keeping their parameters in a nested ``TensorDictParams``, such as
+        ``MultiAgentMLP``, do not list in ``parameters()``).
+
+        Args:
+            network_name (str): ``"options"`` or ``"meta_control"``.
+            copy (bool, optional): return a deep copy (default) rather than the loss's module.
+        """
+        if getattr(self, network_name, None) is None or f"{network_name}_params" not in self._modules:
+            raise ValueError(f"network_name must name a network of the loss ('options', 'meta_control'), got {network_name!r}.")
+        net = getattr(self, network_name)
+        if copy is None or copy:
+            net = deepcopy(net)
+        TensorDict.from_module(net).data.update_(getattr(self, f"{network_name}_params").data)
+        return net
 
     # ------------------------------------------------------------------ helpers
     def _run(self, name: str, tensordict: TensorDictBase) -> TensorDictBase:
