@@ -493,3 +493,179 @@ def test_hierarchical_e_step_checks_and_runs_the_recursion_once(monkeypatch):
     g_objective = torch.autograd.grad(objective(), params)
     for a, b in zip(g_loss, g_objective):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Bad input at the loss's door (issue 26): one row per case, for both losses where the case applies.
+
+
+def _set(key, value):
+    def mutate(td):
+        td.set(key, value(td) if callable(value) else value)
+        return td
+
+    return mutate
+
+
+def _at(key, index, value):
+    def mutate(td):
+        td.get(key)[index] = value
+        return td
+
+    return mutate
+
+
+def _nan_weights(loss):
+    with torch.no_grad():
+        for p in loss.options.parameters():
+            p.fill_(float("nan"))
+    return loss
+
+
+BAD_INPUTS = [
+    # (id, mutate the [4, 12] batch, error, phrase of the message)
+    ("missing observation", lambda td: td.exclude("observation"), ValueError, r"needs 'observation'"),
+    ("missing next observation", lambda td: td.exclude(("next", "observation")), ValueError,
+     r"needs \('next', 'observation'\)"),
+    ("missing next", lambda td: td.exclude("next"), ValueError, r"under 'next'"),
+    ("missing action", lambda td: td.exclude("action"), ValueError, r"action taken at 'action'"),
+    ("float action", _set("action", lambda td: td["action"].float()), ValueError, r"'action' must hold integer"),
+    ("action of the wrong shape", _set("action", torch.zeros(4, 12, 3, dtype=torch.long)), ValueError,
+     r"'action' must hold integer .*\(4, 12, 3\)"),
+    ("action out of range", _at("action", (2, 3), 7), ValueError, r"'action' holds 7, outside"),
+    ("negative action", _at("action", (0, 0), -1), ValueError, r"'action' holds -1, outside"),
+    ("float mask", _set(("collector", "mask"), lambda td: td["collector", "mask"].float()), ValueError,
+     r"\('collector', 'mask'\) must be a bool tensor of shape \(4, 12\), got torch.float32"),
+    ("mask of the wrong shape", _set(("collector", "mask"), torch.ones(4, 12, 2, dtype=torch.bool)), ValueError,
+     r"\('collector', 'mask'\) must be a bool tensor of shape \(4, 12\).*\(4, 12, 2\)"),
+    ("mask with a gap", _at(("collector", "mask"), (1, 3), False), ValueError, r"non-empty prefix.*row 1"),
+    ("mask with an empty row", _at(("collector", "mask"), (2, slice(None)), False), ValueError,
+     r"non-empty prefix.*row 2"),
+    ("too many observation features", lambda td: td.set("observation", torch.randn(4, 12, 5)).set(
+        ("next", "observation"), torch.randn(4, 12, 5)), ValueError, r"in_features=3.*\(4, 12, 5\)"),
+    ("observation without a feature dimension", lambda td: td.set("observation", torch.randn(4, 12)).set(
+        ("next", "observation"), torch.randn(4, 12)), ValueError, r"in_features=3.*\(4, 12\)"),
+    ("next observation of another shape", _set(("next", "observation"), torch.randn(4, 12, 4)), ValueError,
+     r"\('next', 'observation'\) has shape \(4, 12, 4\) but 'observation' has shape \(4, 12, 3\)"),
+    ("empty batch", lambda td: td[:0], ValueError, r"empty batch"),
+    ("empty trajectories", lambda td: td[:, :0], ValueError, r"empty batch"),
+    ("three batch dimensions", lambda td: td.unsqueeze(0), ValueError, r"\[B, T\] tensordict"),
+    ("NaN observation at a valid step", _at("observation", (1, 2, 0), float("nan")), ValueError,
+     r"'observation' holds NaN or inf at valid step \(b, t\) = \(1, 2\)"),
+    ("inf next observation at a valid step", _at(("next", "observation"), (3, 0, 2), float("inf")), ValueError,
+     r"\('next', 'observation'\) holds NaN or inf at valid step \(b, t\) = \(3, 0\)"),
+    ("terminal of the wrong shape", _set(("next", "terminated"), torch.zeros(4, 12, 2, dtype=torch.bool)),
+     ValueError, r"\('next', 'terminated'\) must be a \[B, T\]"),
+    ("complex observation", lambda td: td.set("observation", td["observation"].to(torch.complex64)), ValueError,
+     r"'observation' must hold real numbers"),
+    ("not a tensordict", lambda td: "trajectories", ValueError, r"\[B, T\] tensordict"),
+    ("observation not a tensor", _set("observation", lambda td: TensorDict({"x": td["observation"]}, [4, 12])),
+     TypeError, r"'observation' \(an input of the networks\) must be a tensor, got TensorDict"),
+    ("action not a tensor", _set("action", lambda td: TensorDict({"a": td["action"]}, [4, 12])), TypeError,
+     r"'action' must be a tensor of .*actions, got TensorDict"),
+]
+
+
+@pytest.mark.parametrize("kind", ["flat", "hierarchical"])
+@pytest.mark.parametrize("case", BAD_INPUTS, ids=[c[0] for c in BAD_INPUTS])
+def test_bad_input_table(case, kind):
+    _, mutate, error, match = case
+    loss = _make_loss(kind, meta=True)
+    data = mutate(_trajectories())
+    with pytest.raises(error, match=match):
+        loss(data)
+
+
+BAD_LOSS_SETUPS = [
+    # (id, kinds, make the loss or call it, error, phrase)
+    ("options not a module", ["flat"], lambda: DDOLoss(torch.nn.Linear(3, 4)), TypeError,
+     r"options must be a TensorDictModuleBase, got Linear"),
+    ("meta_control not a module", ["flat"], lambda: DDOLoss(OptionsMLP(3, 4, 2), "learned"), TypeError,
+     r"meta_control must be a TensorDictModuleBase or None, got str"),
+    ("bad reduction", ["flat", "hierarchical"], lambda kind: _make_loss(kind, reduction="avg"), ValueError,
+     r"reduction must be 'mean', 'sum' or 'none', got 'avg'"),
+    ("bad backend", ["flat", "hierarchical"], lambda kind: _make_loss(kind, backend="cuda"), ValueError,
+     r"backend must be one of .*got 'cuda'"),
+    ("bad action space", ["flat", "hierarchical"], lambda kind: _make_loss(kind, action_space="discrete"),
+     ValueError, r"action_space must be one of .*got 'discrete'"),
+    ("continuous hierarchy", ["hierarchical"], lambda kind: _make_loss(kind, action_space="continuous"),
+     ValueError, r"action_space must be one of \('auto', 'categorical'\), got 'continuous'"),
+    ("non-bool diagnostics", ["flat", "hierarchical"], lambda kind: _make_loss(kind, diagnostics=1), TypeError,
+     r"diagnostics must be a bool, got 1"),
+    ("non-bool terminal_at_end", ["flat", "hierarchical"], lambda kind: _make_loss(kind, terminal_at_end="yes"),
+     TypeError, r"terminal_at_end must be a bool, got 'yes'"),
+    ("lower levels not a hierarchy", ["hierarchical"],
+     lambda kind: HierarchicalDDOLoss(OptionsMLP(3, 6, 2), OptionsMLP(3, 4, 2)), TypeError,
+     r"lower_levels must be an OptionHierarchy or a sequence"),
+    ("options writing NaN", ["flat", "hierarchical"], lambda kind: _nan_weights(_make_loss(kind))(_trajectories()),
+     ValueError, r"holds NaN.*at valid step \(b, t\) = \(0, 0\)"),
+    ("bad loss_mask_key", ["flat", "hierarchical"],
+     lambda kind: setattr(_make_loss(kind), "loss_mask_key", 1.5), ValueError, r"loss_mask_key must be"),
+    ("loss mask of the wrong dtype", ["flat", "hierarchical"],
+     lambda kind: _with_loss_mask(_make_loss(kind), torch.ones(4, 12, dtype=torch.long)), ValueError,
+     r"\('my', 'valid'\) must be a bool tensor of shape \(4, 12\), got torch.int64"),
+    ("loss mask not a prefix", ["flat", "hierarchical"],
+     lambda kind: _with_loss_mask(_make_loss(kind), torch.arange(12).expand(4, 12) % 2 == 0), ValueError,
+     r"\('my', 'valid'\) must mark a non-empty prefix"),
+    ("meta-control input NaN at a valid step", ["flat", "hierarchical"], lambda kind: _meta_reading("extra", kind),
+     ValueError, r"'extra' holds NaN or inf at valid step \(b, t\) = \(0, 1\)"),
+    ("meta-control input missing", ["flat", "hierarchical"], lambda kind: _meta_reading("absent", kind),
+     ValueError, r"needs 'absent'"),
+]
+
+
+def _with_loss_mask(loss, mask):
+    loss.loss_mask_key = ("my", "valid")
+    data = _trajectories()
+    data["my", "valid"] = mask
+    return loss(data)
+
+
+def _meta_reading(key, kind):
+    loss = _make_loss(kind)
+    meta = MetaControlMLP(1, 2, in_keys=[key])
+    loss = type(loss)(loss.options, *( [loss.lower_levels] if kind == "hierarchical" else []), meta)
+    data = _trajectories()
+    data["extra"] = torch.zeros(4, 12, 1)
+    data["extra"][0, 1] = float("nan")
+    return loss(data)
+
+
+@pytest.mark.parametrize("case", BAD_LOSS_SETUPS, ids=[c[0] for c in BAD_LOSS_SETUPS])
+def test_bad_loss_setup_table(case):
+    _, kinds, make, error, match = case
+    for kind in kinds:
+        with pytest.raises(error, match=match):
+            make() if make.__code__.co_argcount == 0 else make(kind)
+
+
+GAUSSIAN_BAD_INPUTS = [
+    ("action of another dimension", _set("action", torch.randn(4, 12, 3)), ValueError,
+     r"'action' must be a float tensor of shape \(4, 12, 2\)"),
+    ("integer action", _set("action", torch.zeros(4, 12, 2, dtype=torch.long)), ValueError,
+     r"'action' must be a float tensor"),
+    ("NaN action at a valid step", _at("action", (1, 1, 0), float("nan")), ValueError,
+     r"'action' holds NaN or inf at a valid step"),
+]
+
+
+@pytest.mark.parametrize("case", GAUSSIAN_BAD_INPUTS, ids=[c[0] for c in GAUSSIAN_BAD_INPUTS])
+def test_gaussian_bad_input_table(case):
+    _, mutate, error, match = case
+    data = _trajectories()
+    data["action"] = torch.randn(4, 12, 2)
+    loss = DDOLoss(GaussianOptionsMLP(3, 2, 2, num_cells=4))
+    with pytest.raises(error, match=match):
+        loss(mutate(data.clone()))
+    # padding may hold anything
+    data["collector", "mask"][1, 6:] = False
+    data["action"][1, 6:] = float("nan")
+    assert torch.isfinite(loss(data)["loss_ddo"])
+
+
+def test_one_hot_action_with_two_ones():
+    data = _trajectories()
+    data["action"] = torch.nn.functional.one_hot(data["action"], 4)
+    data["action"][0, 5, :2] = 1
+    with pytest.raises(ValueError, match="one-hot actions must have exactly one 1 per valid step"):
+        DDOLoss(OptionsMLP(3, 4, 2))(data)

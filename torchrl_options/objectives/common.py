@@ -267,7 +267,9 @@ def terminal_flags(tensordict: TensorDictBase, terminal_key: NestedKey, mask: to
         if not isinstance(flag, torch.Tensor) or flag.shape not in ((B, T), (B, T, 1)):
             shape = tuple(flag.shape) if isinstance(flag, torch.Tensor) else type(flag).__name__
             raise ValueError(f"{terminal_key!r} must be a [B, T] (or [B, T, 1]) flag with [B, T] = {(B, T)}, got {shape}.")
-        terminal = flag.reshape(B, T).bool().gather(1, (mask.sum(1) - 1).unsqueeze(1)).squeeze(1)
+        # clamped: a row without valid steps fails the mask check before anything reads this
+        last = (mask.sum(1) - 1).clamp_min(0)
+        terminal = flag.reshape(B, T).bool().gather(1, last.unsqueeze(1)).squeeze(1)
     return terminal
 
 
