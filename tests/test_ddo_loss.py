@@ -311,7 +311,8 @@ class TestLossModuleContract:
     def test_networks_are_functional(self, kind):
         loss = _make_loss(kind, meta=True)
         assert loss.functional
-        assert isinstance(loss.options_params, TensorDictParams) and isinstance(loss.meta_control_params, TensorDictParams)
+        assert isinstance(loss.options_params, TensorDictParams)
+        assert isinstance(loss.meta_control_params, TensorDictParams)
         # the parameters are the modules' own: an optimizer over loss.parameters() trains loss.options
         own = {id(p) for p in loss.options.parameters()} | {id(p) for p in loss.meta_control.parameters()}
         assert {id(p) for p in loss.parameters()} == own

@@ -21,7 +21,6 @@ from torchrl_options.discovery.discover import (
     minibatch,
 )
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
-from torchrl_options.hierarchy.inference import hierarchical_forward_backward
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
 

@@ -224,16 +224,8 @@ class HierarchicalDDOLoss(DDOLossBase):
         """
         keys = self.tensor_keys
         checks = BatchChecks()
-        tensordict, mask, current, following = self._prepare(tensordict, checks)
+        tensordict, mask, current, following, action = self._prepare(tensordict, checks)
         B, T = tensordict.batch_size
-
-        action = tensordict.get(keys.action, None)
-        if action is None:
-            raise ValueError(
-                f"HierarchicalDDOLoss needs the primitive action taken at {keys.action!r}, missing from the trajectories."
-            )
-        if not isinstance(action, torch.Tensor):
-            raise TypeError(f"{keys.action!r} must be a tensor of primitive actions, got {type(action).__name__}.")
         if action.shape == (B, T, 1):
             action = action.squeeze(-1)
         if action.shape != (B, T) or action.is_floating_point() or action.is_complex():

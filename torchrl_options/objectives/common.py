@@ -159,7 +159,9 @@ def prepare_trajectories(
         if m is None:
             continue
         if not isinstance(m, torch.Tensor):
-            raise TypeError(f"{key!r} (a validity mask) must be a bool tensor of shape {(B, T)}, got {type(m).__name__}.")
+            raise TypeError(
+                f"{key!r} (a validity mask) must be a bool tensor of shape {(B, T)}, got {type(m).__name__}."
+            )
         if m.shape == (B, T, 1):
             m = m.squeeze(-1)
         if m.shape != (B, T) or m.dtype != torch.bool:
@@ -206,7 +208,9 @@ def prepare_trajectories(
                 )
         if x.is_floating_point():
             bad = ~torch.isfinite(x).reshape(B, T, -1).all(-1) & mask
-            checks.add(bad.any(), lambda name=name, bad=bad: f"{name!r} holds NaN or inf at valid step {_first_bad_step(bad)}.")
+            checks.add(
+                bad.any(), lambda name=name, bad=bad: f"{name!r} holds NaN or inf at valid step {_first_bad_step(bad)}."
+            )
         valid = mask.view(B, T, *([1] * (x.ndim - 2)))
         source.set(key, torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)))
     if own_checks:
@@ -246,7 +250,9 @@ def meta_control_log_probs(
     return meta.log_softmax(-1)
 
 
-def terminal_flags(tensordict: TensorDictBase, terminal_key: NestedKey, mask: torch.Tensor, enabled: bool) -> torch.Tensor:
+def terminal_flags(
+    tensordict: TensorDictBase, terminal_key: NestedKey, mask: torch.Tensor, enabled: bool
+) -> torch.Tensor:
     """``[B]`` bool: the ``terminal_key`` flag at each row's last valid step (all False when disabled or absent).
 
     Raises:
@@ -266,7 +272,9 @@ def terminal_flags(tensordict: TensorDictBase, terminal_key: NestedKey, mask: to
     if flag is not None:
         if not isinstance(flag, torch.Tensor) or flag.shape not in ((B, T), (B, T, 1)):
             shape = tuple(flag.shape) if isinstance(flag, torch.Tensor) else type(flag).__name__
-            raise ValueError(f"{terminal_key!r} must be a [B, T] (or [B, T, 1]) flag with [B, T] = {(B, T)}, got {shape}.")
+            raise ValueError(
+                f"{terminal_key!r} must be a [B, T] (or [B, T, 1]) flag with [B, T] = {(B, T)}, got {shape}."
+            )
         # clamped: a row without valid steps fails the mask check before anything reads this
         last = (mask.sum(1) - 1).clamp_min(0)
         terminal = flag.reshape(B, T).bool().gather(1, last.unsqueeze(1)).squeeze(1)
@@ -313,19 +321,21 @@ def check_network_output(
     Examples:
         >>> import torch
         >>> checks = BatchChecks()
-        >>> check_network_output(checks, "options' 'option_logits'", torch.full((1, 2, 3), float("nan")),
-        ...                      torch.tensor([[True, False]]))
+        >>> check_network_output(checks, "log pi", torch.full((1, 2, 3), float("nan")), torch.tensor([[True, False]]))
         >>> checks.raise_if_any()
         Traceback (most recent call last):
             ...
-        ValueError: options' 'option_logits' holds NaN or +inf at valid step (b, t) = (0, 0): the networks' outputs must be finite.
+        ValueError: log pi holds NaN or +inf at valid step (b, t) = (0, 0): the networks' outputs must be finite.
     """
     B, T = mask.shape
     bad = torch.isnan(x) if logits else torch.isnan(x) | (x == float("inf"))
     bad = bad.reshape(B, T, -1).any(-1) & mask
     checks.add(
         bad.any(),
-        lambda: f"{name} holds NaN{'' if logits else ' or +inf'} at valid step {_first_bad_step(bad)}: the networks' outputs must be finite.",
+        lambda: (
+            f"{name} holds NaN{'' if logits else ' or +inf'} at valid step {_first_bad_step(bad)}: the networks' "
+            "outputs must be finite."
+        ),
     )
 
 
@@ -531,7 +541,9 @@ class DDOLossBase(LossModule):
             copy (bool, optional): return a deep copy (default) rather than the loss's module.
         """
         if getattr(self, network_name, None) is None or f"{network_name}_params" not in self._modules:
-            raise ValueError(f"network_name must name a network of the loss ('options', 'meta_control'), got {network_name!r}.")
+            raise ValueError(
+                f"network_name must name a network of the loss ('options', 'meta_control'), got {network_name!r}."
+            )
         net = getattr(self, network_name)
         if copy is None or copy:
             net = deepcopy(net)
@@ -546,7 +558,7 @@ class DDOLossBase(LossModule):
             return _call_checked(name, module, tensordict)
 
     def _prepare(self, tensordict: TensorDictBase, checks: BatchChecks):
-        """Shape/key checks and the zero-padded inputs of the networks, value checks recorded in ``checks``."""
+        """Shape/key checks, the zero-padded inputs of the networks and the actions; value checks go to ``checks``."""
         tensordict, mask, current, following = prepare_trajectories(
             tensordict, self._obs_keys(), self.mask_keys, owner=type(self).__name__, current_keys=self._meta_keys(),
             checks=checks,
@@ -555,7 +567,13 @@ class DDOLossBase(LossModule):
             _check_in_features(self._module_name(j), module, current)
         if self.meta_control is not None:
             _check_in_features("meta_control", self.meta_control, current)
-        return tensordict, mask, current, following
+        key = self.tensor_keys.action
+        action = tensordict.get(key, None)
+        if action is None:
+            raise ValueError(f"{type(self).__name__} needs the action taken at {key!r}, missing from the trajectories.")
+        if not isinstance(action, torch.Tensor):
+            raise TypeError(f"{key!r} must be a tensor of actions, got {type(action).__name__}.")
+        return tensordict, mask, current, following, action
 
     def _module_name(self, j: int) -> str:
         return "options"

@@ -5,7 +5,6 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
 from torchrl_options.inference import forward_backward
@@ -262,22 +261,6 @@ class DDOLoss(DDOLossBase):
     BACKENDS = BACKENDS
     ACTION_SPACES = ("categorical", "continuous")
 
-    def __init__(
-        self,
-        options: TensorDictModuleBase,
-        meta_control: TensorDictModuleBase | None = None,
-        *,
-        action_space: str = "auto",
-        terminal_at_end: bool = True,
-        reduction: str = "mean",
-        diagnostics: bool = True,
-        backend: str = "auto",
-    ) -> None:
-        super().__init__(
-            options, meta_control, action_space=action_space, terminal_at_end=terminal_at_end, reduction=reduction,
-            diagnostics=diagnostics, backend=backend,
-        )  # fmt: skip
-
     def log_probabilities(self, tensordict: TensorDictBase) -> dict[str, torch.Tensor]:
         """The four ``[B, T, K]`` inputs of the E-step, plus the mask and terminal flags, for a ``[B, T]`` batch.
 
@@ -293,11 +276,8 @@ class DDOLoss(DDOLossBase):
         """
         keys = self.tensor_keys
         checks = BatchChecks()
-        tensordict, mask, current, following = self._prepare(tensordict, checks)
+        tensordict, mask, current, following, action = self._prepare(tensordict, checks)
         B, T = tensordict.batch_size
-        action = tensordict.get(keys.action, None)
-        if action is None:
-            raise ValueError(f"DDOLoss needs the action taken at {keys.action!r}, missing from the trajectories.")
         both = self._run("options", torch.cat([current.select(*self.options.in_keys), following], 0))
         out, out_next = both[:B], both[B:]
         log_pi = option_log_probs(
