@@ -207,6 +207,28 @@ def test_tabulated_e_step_matches_ddo_loss(meta):
         loss.zero_grad()
 
 
+def test_tabulated_e_step_reads_the_loss_mask_keys():
+    """TabulatedDDO masks as its loss does: tensor_keys.mask and the loss_mask_key entries (NaN padding ignored)."""
+    data = planted_corridor_demonstrations(4, 30, seed=2).exclude(("collector", "mask"))
+    valid = torch.ones(4, 30, dtype=torch.bool)
+    valid[1, 20:] = False
+    data["my", "valid"] = valid
+    data["observation"][1, 20:] = float("nan")
+    torch.manual_seed(0)
+    loss = DDOLoss(OptionsMLP(2, 2, 2, num_cells=4))
+    loss.loss_mask_key = ("my", "valid")
+    record, _ = TabulatedDDO(loss, data).e_step()
+    expected = loss(data)
+    for key in loss.out_keys:
+        torch.testing.assert_close(record[key], expected[key].detach())
+    torch.testing.assert_close(TabulatedDDO(loss, data).num_steps, torch.tensor(110))
+    with pytest.raises(ValueError, match="reads other entries"):
+        TabulatedDDO(loss, data).for_loss(DDOLoss(loss.options))  # another mask key
+    loss.loss_mask_key = None
+    with pytest.raises(ValueError, match="'observation' holds NaN"):
+        TabulatedDDO(loss, data)
+
+
 def test_unique_rows_is_exact():
     x = torch.tensor([[0.1, 1.0], [0.1, 1.0 + 1e-7], [0.1, 1.0]])
     inverse, first = unique_rows([x, torch.tensor([3, 3, 3], dtype=torch.uint8)])

@@ -22,7 +22,6 @@ from torchrl_options.discovery.discover import (
     minibatch,
 )
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
-from torchrl_options.hierarchy.inference import hierarchical_forward_backward
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
 
@@ -293,11 +292,8 @@ class HierarchicalEStep:
         loss = self.loss_module
         keys = loss.tensor_keys
         options, meta_control = loss.options, loss.meta_control
-        if loss.diagnostics:
-            with torch.no_grad():
-                record = dict(loss(batch).items())
         with torch.no_grad():
-            p = loss.log_probabilities(batch)
+            p = loss.log_probabilities(batch)  # the batch's one check (one synchronisation)
         mask = p["mask"]
         trained = [p["log_pi"][-1], p["log_term"][-1], p["log_cont"][-1]]
         if meta_control is not None:
@@ -305,15 +301,14 @@ class HierarchicalEStep:
         leaves = [x.detach().requires_grad_() for x in trained]
         log_eta = leaves[3] if meta_control is not None else p["log_eta"]
         with torch.enable_grad():
-            post = hierarchical_forward_backward(
-                p["action"], [*p["log_pi"][:-1], leaves[0]], [*p["log_term"][:-1], leaves[1]],
-                [*p["log_cont"][:-1], leaves[2]], log_eta, mask, p["terminal"], validate=False, backend=loss.backend,
+            # one recursion gives the gradients (the expected counts) and, when logged, the loss's diagnostics
+            post = loss._posterior(
+                p, marginals=loss.diagnostics, log_pi=[*p["log_pi"][:-1], leaves[0]],
+                log_term=[*p["log_term"][:-1], leaves[1]], log_cont=[*p["log_cont"][:-1], leaves[2]], log_eta=log_eta,
             )  # fmt: skip
             grads = torch.autograd.grad(post.log_likelihood.sum(), leaves)
+        record = {k: v.detach() for k, v in loss.loss_outputs(p, post).items()}
         n = mask.sum()
-        ll = post.log_likelihood.detach().sum() / n
-        if not loss.diagnostics:
-            record = {"loss_ddo": -ll, "log_likelihood_per_step": ll}
 
         # the trained level's networks run once per distinct state of the batch
         batch = batch if batch.ndim == 2 else batch.unsqueeze(0)
