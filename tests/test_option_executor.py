@@ -237,25 +237,51 @@ def test_multisync_collector_spawn(monkeypatch):
     _multisync(monkeypatch, "spawn")
 
 
-def test_seeding_reproducible_and_distinct():
-    """Stochastic options: actions and terminations come from the executor's generator, seeded by set_seed."""
-    def rollout(seed):
-        env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(
-            OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
-        )
-        env.set_seed(seed)
-        td = env.reset()
-        records = []
-        for _ in range(30):
-            td["action"] = torch.full((4,), A + 0)  # always ask for option 0; it only starts at decisions
-            td = env.step(td)
-            records.append(td["next", "executed_action"].clone())
-            records.append(td["next", "option_decision"].clone())
-            td = env.step_mdp(td)
-        return torch.stack([r.long() for r in records])
+def _stochastic_records(seed, executor_seed=None, policy_draws=False):
+    """Executed actions and decisions of stochastic options (always asking for option 0)."""
+    executor = OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
+    env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(executor)
+    if executor_seed is not None:
+        executor.set_seed(executor_seed)
+    torch.manual_seed(seed)
+    env.set_seed(seed)
+    td = env.reset()
+    records = []
+    for _ in range(30):
+        td["action"] = torch.full((4,), A + 0)  # always ask for option 0; it only starts at decisions
+        if policy_draws:
+            torch.rand(3)  # other code drawing from torch's default generator
+        td = env.step(td)
+        records.append(td["next", "executed_action"].clone())
+        records.append(td["next", "option_decision"].clone())
+        td = env.step_mdp(td)
+    return torch.stack([r.long() for r in records])
 
-    assert (rollout(1) == rollout(1)).all()
-    assert (rollout(1) != rollout(2)).any()
+
+def test_seeding_reproducible_and_distinct():
+    """Stochastic options draw from torch's default generator (TorchRL's convention), or from a private one."""
+    with torch.random.fork_rng():
+        # torch.manual_seed makes a run reproducible; other seeds give other draws
+        assert (_stochastic_records(1) == _stochastic_records(1)).all()
+        assert (_stochastic_records(1) != _stochastic_records(2)).any()
+        # executor.set_seed: the draws follow its own seed, whatever the global seed or other code's draws
+        private = _stochastic_records(1, executor_seed=7)
+        assert (private == _stochastic_records(2, executor_seed=7, policy_draws=True)).all()
+        assert (private != _stochastic_records(1, executor_seed=8)).any()
+        # the private generator is not shared by a clone appended to another env: it restarts from the seed
+        executor = OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
+        executor.set_seed(3)
+        env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(executor)
+        state = executor.generator.get_state()
+        env.rollout(5)
+        assert not torch.equal(state, executor.generator.get_state())
+        clone = executor.clone()
+        Corridor(L, max_steps=50, batch_size=[4]).append_transform(clone)
+        assert torch.equal(clone.generator.get_state(), state)
+        with pytest.raises(TypeError, match="seed"):
+            executor.set_seed(1.5)
+        executor.set_seed(None)
+        assert executor.generator is None
 
 
 def test_stochastic_termination_rate():
@@ -409,30 +435,35 @@ def test_options_run_once_per_step():
     policy = scripted_policy([[LEFT, LEFT, A + 0, LEFT]] * 10)  # no env reaches the end: no reset
     data = env.rollout(10, policy=policy, break_when_any_done=False)
     assert not data["next", "done"].any()
-    assert options.calls == 10 + 1  # + the first step after the reset
+    # + the reset; + 1 the first time: the first call also checks that TensorDictModule's module gives the same
+    # outputs called directly (it is, from then on)
+    assert options.calls == 10 + 1 + 1
     # env 2 runs the option: right up to cell 4, then left (state-dependent actions from the reused outputs)
     assert data["next", "position"][2].squeeze(-1).tolist() == [1, 2, 3, 4, 3, 4, 3, 4, 3, 4]
 
 
-def test_options_recomputed_when_inputs_or_parameters_change():
+def test_option_actions_are_state_in_the_tensordict():
+    """Each option's action at s_t is drawn when s_t is observed and carried in the tensordict, as TorchRL's state."""
     env, options = counting_corridor()
-    env.set_seed(0)
+    check_env_specs(env)
     td = env.reset()
+    assert td["option_actions"].tolist() == [RIGHT]  # the option's action at cell 0
     td["action"] = torch.tensor(A + 0)  # start the option at cell 0: right
     td = env.step_mdp(env.step(td))
-    assert int(td["position"]) == 1 and int(td["option"]) == 0
-    # the observation is written in place (as partial resets and batched-env buffers do): the option must
-    # act at the new value (cell 5: left), not reuse its outputs at cell 1 (right)
-    td["position"].fill_(5)
-    td["action"] = torch.tensor(LEFT)  # ignored: the option runs
+    assert int(td["position"]) == 1 and int(td["option"]) == 0 and td["option_actions"].tolist() == [RIGHT]
+    # the executed action is the one carried in the tensordict
+    td["option_actions"] = torch.tensor([LEFT])
+    td["action"] = torch.tensor(RIGHT)  # ignored: the option runs
     td = env.step_mdp(env.step(td))
     assert int(td["executed_action"]) == LEFT and int(td["position"]) == 0
-    # the options' parameters (here a buffer) change in place (training, load_state_dict): at cell 0 the
-    # option now goes left; reusing the outputs computed before the change would go right
+    # the options' parameters (here a buffer) change in place (training, load_state_dict): the action at the
+    # current state was drawn before; the next states use the new parameters
     options.flip.fill_(1.0)
-    td["action"] = torch.tensor(LEFT)
-    td = env.step(td)
-    assert int(td["next", "executed_action"]) == LEFT and int(td["next", "executed_option"]) == 0
+    for expected in (RIGHT, LEFT):
+        td["action"] = torch.tensor(RIGHT)
+        td = env.step_mdp(env.step(td))
+        assert int(td["executed_action"]) == expected
+    assert int(td["position"]) == 0
 
 
 def test_inference_mode_and_float64_options():
