@@ -360,15 +360,23 @@ class OptionExecutor(Transform):
             spec = self._base_action_spec()
             A, K = spec.n, self.num_options
             shift = A if self.primitive_actions else 0
+            n = spec.shape.numel()
             consts = _StepConstants(
                 device=device,
                 A=A,
                 K=K,
                 n_aug=shift + K,
                 shape=spec.shape,
+                n=n,
+                dtype=spec.dtype,
                 # augmented action -> the option it starts at a decision, -1 for a primitive action
                 decode=(torch.arange(shift + K, device=device) - shift).clamp_min(_NO_OPTION),
-                deferred=_DeferredFlags(device) if device.type == "cuda" else None,
+                arange=torch.arange(n, device=device),
+                no_option=torch.tensor(_NO_OPTION, device=device),
+                # buffers the uniforms are drawn into (torch.rand without an allocation); no output references them
+                u_actions=torch.empty((*spec.shape, K, 1), device=device),
+                u_terminations=torch.empty(spec.shape, device=device),
+                deferred=_DeferredFlags(device) if _defers_checks(device) else None,
                 generator=self._generator(device),
             )
             self.__dict__["_consts"] = consts
@@ -398,18 +406,16 @@ class OptionExecutor(Transform):
             term = term.reshape(*shape, K)
         if self.greedy:
             actions = logits.argmax(-1)
-            invalid = torch.isnan(logits).any() | torch.isnan(term).any()
+            total = logits.sum(-1)  # NaN if a row has a NaN
         else:
             # inverse-CDF draw, one uniform per env and option; right=True never picks a zero-probability action,
             # the clamp keeps rounding (a CDF ending below u) from giving A
             cdf = logits.softmax(-1).cumsum(-1)
-            u = torch.rand((*shape, K, 1), generator=consts.generator, device=cdf.device, dtype=cdf.dtype)
+            u = _uniform(consts.u_actions, cdf.dtype, consts.generator)
             actions = torch.searchsorted(cdf, u, right=True).squeeze(-1).clamp_max_(A - 1)
-            # a NaN, a +inf or only -inf in a row make its softmax NaN
-            invalid = torch.isnan(cdf[..., -1]).any() | torch.isnan(term).any()
-        self._flag(consts, _NAN, invalid, lambda: self._nan_message(logits, term))
-        dtype = self._base_action_spec().dtype
-        return (actions if actions.dtype is dtype else actions.to(dtype)), term
+            total = cdf[..., -1]  # NaN if a row's softmax is: a NaN, a +inf or only -inf in the row
+        self._check_options_outputs(consts, total, logits, term)
+        return (actions if actions.dtype is consts.dtype else actions.to(consts.dtype)), term
 
     def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         keys = self._options_in_keys
@@ -474,13 +480,20 @@ class OptionExecutor(Transform):
         return direct if positions is not None else None
 
     # ---------------------------------------------------------------- checks
-    def _flag(self, consts: _StepConstants, kind: int, invalid: torch.Tensor, message) -> None:
-        """Raises ``ValueError(message())`` if ``invalid``: at once on the CPU, later on CUDA (no sync)."""
+    def _check_options_outputs(
+        self, consts: _StepConstants, total: torch.Tensor, logits: torch.Tensor, term: torch.Tensor
+    ) -> None:
+        """Raises if a row of ``total`` (NaN for an unusable row of action logits) or ``term`` is NaN.
+
+        On the CPU one sum tells whether anything is NaN (a false alarm, from ``+inf`` and ``-inf`` termination
+        logits, is cleared by the exact check); on CUDA the exact flag is recorded for a later step.
+        """
         if consts.deferred is None:
-            if invalid:
-                raise ValueError(message())
+            s = float((total + term).sum())
+            if s != s and (torch.isnan(total).any() or torch.isnan(term).any()):
+                raise ValueError(self._nan_message(logits, term))
         else:
-            consts.deferred.add(kind, invalid)
+            consts.deferred.add(_NAN, torch.isnan(total).any() | torch.isnan(term).any())
 
     def _raise_deferred(self, consts: _StepConstants, wait: bool = False) -> None:
         """Raises for the faults that earlier CUDA steps flagged, once the flags reached the host."""
@@ -506,7 +519,7 @@ class OptionExecutor(Transform):
         elif torch.isnan(logits).any():
             where, what = self.option_logits_key, "NaN"
         else:
-            where, what = self.option_logits_key, "a row without a valid softmax (a +inf, or only -inf)"
+            where, what = self.option_logits_key, "a row without a valid softmax (a +inf, or only -inf) for an option"
         return (
             f"OptionExecutor: the options module wrote {what} in {where!r}; the options cannot act or terminate "
             "there. Check the options' parameters and inputs."
@@ -576,8 +589,8 @@ class OptionExecutor(Transform):
             lower_ready = self._lower_ready(tensordict, action.shape)
             decision = decision & lower_ready
         option = torch.where(decision, started, running)  # -1: the policy's primitive action runs
-        # the running option's action (option -1 reads option 0's, which is then not used)
-        option_action = option_actions.gather(-1, option.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+        # the running option's action (option -1 reads option K-1's, which is then not used)
+        option_action = _pick(option_actions, option, consts)
         if option_action.dtype is not action.dtype:
             option_action = option_action.to(action.dtype)
         if self.lower_option_key is None:
@@ -605,9 +618,9 @@ class OptionExecutor(Transform):
             consts = self._constants(option.device)
         # the options at s_{t+1}: the termination of the running option, and each option's action there
         option_actions, term_logits = self._evaluate_options(next_tensordict, consts)
-        # option -1 (primitive) reads column 0: its draw is not used, the option stays -1
-        term_logits = term_logits.gather(-1, option.clamp_min(0).unsqueeze(-1)).squeeze(-1)
-        u = torch.rand(term_logits.shape, generator=consts.generator, device=term_logits.device, dtype=term_logits.dtype)
+        # option -1 (primitive) reads column K-1: its draw is not used, the option stays -1
+        term_logits = _pick(term_logits, option, consts)
+        u = _uniform(consts.u_terminations, term_logits.dtype, consts.generator)
         terminate = u < term_logits.sigmoid()
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
@@ -617,7 +630,7 @@ class OptionExecutor(Transform):
         if done is None:
             raise ValueError(f"OptionExecutor: the env's output has no done entry {self.done_key!r} (done_key).")
         ends = terminate | done.reshape(terminate.shape)
-        next_tensordict.set(self.option_key, torch.where(ends, _NO_OPTION, option))
+        next_tensordict.set(self.option_key, torch.where(ends, consts.no_option, option))
         next_tensordict.set(self.option_actions_key, option_actions)
         next_tensordict.set(self.executed_action_key, tensordict.get(self.executed_action_key))
         next_tensordict.set(self.executed_option_key, option)
@@ -678,36 +691,49 @@ class OptionExecutor(Transform):
 _RANGE, _NAN = 0, 1  # bad-input flags
 
 
-class _DeferredFlags:
-    """Bad-input flags set on a CUDA device and read by the host without waiting for the device.
+def _defers_checks(device: torch.device) -> bool:
+    """Whether bad-input checks on ``device`` are deferred (CUDA: reading a device value on the host would wait)."""
+    return device.type == "cuda"
 
-    ``add`` ORs a flag on the device; ``publish`` starts a non-blocking copy of the flags to pinned host memory and
-    records an event; ``read`` looks at the last copy once its event has completed (``wait=True`` waits for it).
-    The flags are sticky, so a fault is never lost between two reads.
+
+class _DeferredFlags:
+    """Bad-input flags set on the device and read by the host without waiting for the device.
+
+    ``add`` ORs a flag on the device; ``publish`` starts a copy of the flags to (pinned) host memory, non-blocking on
+    CUDA, and records an event; ``read`` looks at the last copy once its event has completed (``wait=True`` waits for
+    it) and clears the flags it reports. Flags stay set until read, so a fault is never lost between two reads.
     """
 
     def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
         self.flags = torch.zeros(2, dtype=torch.bool, device=device)
-        self.host = torch.zeros(2, dtype=torch.bool, pin_memory=True)
-        self.event: torch.cuda.Event | None = None
+        self.host = torch.zeros(2, dtype=torch.bool, pin_memory=self.cuda)
+        self.event = torch.cuda.Event() if self.cuda else None
+        self.published = False
 
     def add(self, kind: int, invalid: torch.Tensor) -> None:
         self.flags[kind].logical_or_(invalid)
 
     def publish(self) -> None:
-        if self.event is None:
-            self.event = torch.cuda.Event()
-        self.host.copy_(self.flags, non_blocking=True)
-        self.event.record()
+        self.host.copy_(self.flags, non_blocking=self.cuda)
+        if self.event is not None:
+            self.event.record()
+        self.published = True
 
     def read(self, wait: bool = False) -> list[bool]:
-        if self.event is None:
+        if not self.published:
             return [False, False]
-        if wait:
-            self.event.synchronize()
-        elif not self.event.query():
-            return [False, False]
-        return self.host.tolist()
+        if self.event is not None:
+            if wait:
+                self.event.synchronize()
+            elif not self.event.query():
+                return [False, False]
+        faults = self.host.tolist()
+        if any(faults):  # reported once
+            self.flags.zero_()
+            self.host.zero_()
+            self.published = False
+        return faults
 
 
 class _StepConstants(NamedTuple):
@@ -716,9 +742,29 @@ class _StepConstants(NamedTuple):
     K: int  # options
     n_aug: int  # policy-facing actions
     shape: torch.Size  # action shape (the env's batch)
+    n: int  # envs in the batch
+    dtype: torch.dtype  # action dtype
     decode: torch.Tensor  # [n_aug]: augmented action -> option started (-1: primitive)
-    deferred: _DeferredFlags | None  # CUDA: bad-input flags read without a sync
+    arange: torch.Tensor  # [n]
+    no_option: torch.Tensor  # -1, 0-dim
+    u_actions: torch.Tensor  # [*shape, K, 1] float32 buffer of the action draws
+    u_terminations: torch.Tensor  # [*shape] float32 buffer of the termination draws
+    deferred: _DeferredFlags | None  # CUDA: bad-input flags read without a sync (None: checked at once)
     generator: torch.Generator | None  # None: torch's default generator
+
+
+def _uniform(buffer: torch.Tensor, dtype: torch.dtype, generator: torch.Generator | None) -> torch.Tensor:
+    """Uniforms of the buffer's shape drawn into ``buffer`` (float32: the same draws whatever the options' dtype)."""
+    u = buffer.uniform_(generator=generator)
+    return u if u.dtype is dtype else u.to(dtype)
+
+
+def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> torch.Tensor:
+    """``table[..., option]`` per env: ``[*batch, K]`` and ``[*batch]`` -> ``[*batch]``; option ``-1`` reads column
+    ``K - 1`` (a value then not used)."""
+    if len(consts.shape) == 1:
+        return table[consts.arange, option]
+    return table.reshape(consts.n, consts.K)[consts.arange, option.reshape(-1)].view(consts.shape)
 
 
 def _sibling_key(key: NestedKey, name: str) -> NestedKey:
