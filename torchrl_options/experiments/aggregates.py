@@ -309,8 +309,9 @@ def aggregates_markdown(agg: Aggregates, *, score_name: str = "score") -> str:
     if agg.improvement:
         lines += [
             "",
-            f"Probability of improvement P(X > Y), over tasks: verdict \"ahead\" / \"behind\" when its {pct}% interval "
-            "lies above / below 0.5, \"no evidence either way\" when it contains 0.5.\n",
+            f"Probability of improvement P(X > Y), averaged over tasks: verdict \"ahead\" / \"behind\" when its {pct}% "
+            "interval lies above / below 0.5, \"no evidence either way\" when it contains 0.5. It compares every run of "
+            "X with every run of Y (unpaired), so it does not use a pairing of runs by seed.\n",
             f"| X vs Y | P(X > Y) [{pct}% CI] | verdict | runs per task (X vs Y) |",
             "|---|---|---|---|",
         ]
