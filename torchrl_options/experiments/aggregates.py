@@ -21,7 +21,7 @@ has few runs (``benchmarks/bench_intervals.py`` measures it); summaries name the
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -211,7 +211,6 @@ class Aggregates:
     confidence: float
     num_resamples: int
     normalization: str = "min-max per task over all runs of all algorithms"
-    extra: dict = field(default_factory=dict)
 
     def verdict(self, pair: tuple[str, str]) -> str:
         """``"ahead"`` when the interval of P(X > Y) lies above 0.5, ``"behind"`` below, else no evidence."""

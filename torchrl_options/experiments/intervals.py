@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["interval_verdict", "mean_interval", "paired_difference_interval", "t_quantile"]
+__all__ = ["interval_verdict", "mean_interval", "paired_difference_interval", "t_intervals", "t_quantile"]
 
 #: the three verdicts of :func:`interval_verdict`
 AHEAD, BEHIND, NO_EVIDENCE = "ahead", "behind", "no evidence either way"
@@ -112,6 +112,12 @@ def t_intervals(x: np.ndarray, confidence: float = 0.95, axis: int = 0) -> tuple
     """:func:`mean_interval` along ``axis`` of an array (e.g. a learning curve per seed), vectorised.
 
     Returns the arrays ``(mean, low, high)``; with one value along ``axis``, ``low`` and ``high`` are -inf and inf.
+    The caller checks the values (:func:`mean_interval` does, for one sample).
+
+    Examples:
+        >>> mean, low, high = t_intervals(np.array([[0.0, 1.0], [1.0, 1.0], [2.0, 1.0]]), axis=0)
+        >>> mean.tolist(), np.round(low, 3).tolist(), high[1].item()
+        ([1.0, 1.0], [-1.484, 1.0], 1.0)
     """
     x = np.asarray(x, dtype=float)
     confidence = _check_confidence(confidence)

@@ -8,7 +8,7 @@ from collections import defaultdict
 import numpy as np
 
 from torchrl_options.experiments.aggregates import Aggregates, METHOD as AGGREGATE_METHOD
-from torchrl_options.experiments.intervals import t_intervals
+from torchrl_options.experiments.intervals import METHOD as INTERVAL_METHOD, t_intervals
 from torchrl_options.experiments.results import ResultsLog, smooth
 
 __all__ = ["plot_aggregates", "plot_curves"]
@@ -53,7 +53,7 @@ def plot_curves(
                 ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color(),
                                 label=f"{condition}: {pct}% t-interval over {k} seeds")
         name = setting if title is None else f"{title}: {setting}"
-        ax.set_title(f"{name}\nbands: {pct}% Student-t interval of the mean over seeds", fontsize=10)
+        ax.set_title(f"{name}\nbands: {pct}% {INTERVAL_METHOD}", fontsize=10)
         ax.set_xlabel("episode")
         ax.set_ylabel(f"return ({smooth_window}-episode mean)")
         ax.legend(fontsize=8)
