@@ -16,7 +16,8 @@ Run:
     python recipes/atari_ram.py preset=cpu-vec-rr                         # cpu-vec at DQN's usual replay ratio, 8 seeds
 
 Writes to ``out_dir``: ``results.csv`` (one row per episode and cell, re-runs skip finished cells),
-``summary.md``, ``curves.png``, ``aggregates.png``, ``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.
+``summary.md`` (with aggregates over the games), ``curves.png``, ``aggregates.png``,
+``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.
 """
 from __future__ import annotations
 

@@ -122,6 +122,10 @@ def test_aggregate_scores_verdicts_and_markdown():
         aggregate_scores(scores, [("H2", "A")])
     with pytest.raises(ValueError, match="tasks must name the 3 columns"):
         aggregate_scores(scores, pairs, tasks=["Pong"])
+    with pytest.raises(ValueError, match="same tasks, got these numbers of columns: \\{'A': 2, 'B': 1\\}"):
+        aggregate_scores({"A": [[0.0, 1.0]], "B": [[0.0]]}, [], normalize=False)
+    given = aggregate_scores({"A": [[0.2, 0.4], [0.6, 0.8]]}, [], normalize=False, num_resamples=100)
+    assert given.iqm["A"][0] == pytest.approx(0.5) and given.normalization == "as given"
 
 
 def test_against_rliable_when_installed():
@@ -145,7 +149,8 @@ def test_plot_aggregates_names_its_intervals(tmp_path, monkeypatch):
     plot_aggregates(agg, tmp_path / "aggregates.png", title="Atari RAM")
     assert (tmp_path / "aggregates.png").read_bytes()[:4] == b"\x89PNG"
     fig = saved[0]
-    assert "stratified percentile bootstrap" in fig._suptitle.get_text() and "Pong, Seaquest" in fig._suptitle.get_text()
+    suptitle = fig._suptitle.get_text()
+    assert "stratified percentile bootstrap" in suptitle and "Pong, Seaquest" in suptitle
     assert [ax.get_title() for ax in fig.axes] == ["IQM, 95% CI", "Probability of improvement, 95% CI",
                                                   "Performance profiles, 95% bands"]
     assert any("runs/task" in t.get_text() for t in fig.axes[0].get_yticklabels())

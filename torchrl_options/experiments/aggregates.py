@@ -190,7 +190,8 @@ def min_max_normalize(scores: Mapping[str, np.ndarray]) -> tuple[dict[str, np.nd
     mats = {name: _as_scores(s, f"scores[{name!r}]") for name, s in scores.items()}
     tasks = {m.shape[1] for m in mats.values()}
     if len(tasks) != 1:
-        raise ValueError(f"every algorithm must have the same tasks, got {dict((k, m.shape[1]) for k, m in mats.items())}.")
+        columns = {k: m.shape[1] for k, m in mats.items()}
+        raise ValueError(f"every algorithm must have the same tasks, got these numbers of columns: {columns}.")
     low = np.min([m.min(0) for m in mats.values()], axis=0)
     high = np.max([m.max(0) for m in mats.values()], axis=0)
     span = np.where(high > low, high - low, 1.0)
@@ -251,7 +252,8 @@ def aggregate_scores(
         {k: _as_scores(v, f"scores[{k!r}]") for k, v in scores.items()}, None, None)
     num_tasks = next(iter(mats.values())).shape[1]
     if any(m.shape[1] != num_tasks for m in mats.values()):
-        raise ValueError(f"every algorithm must have the same tasks, got {dict((k, m.shape[1]) for k, m in mats.items())}.")
+        columns = {k: m.shape[1] for k, m in mats.items()}
+        raise ValueError(f"every algorithm must have the same tasks, got these numbers of columns: {columns}.")
     tasks = [f"task{i}" for i in range(num_tasks)] if tasks is None else list(tasks)
     if len(tasks) != num_tasks:
         raise ValueError(f"tasks must name the {num_tasks} columns of the scores, got {len(tasks)} names: {tasks!r}.")
@@ -309,8 +311,8 @@ def aggregates_markdown(agg: Aggregates, *, score_name: str = "score") -> str:
         lines += [
             "",
             f"Probability of improvement P(X > Y), averaged over tasks: verdict \"ahead\" / \"behind\" when its {pct}% "
-            "interval lies above / below 0.5, \"no evidence either way\" when it contains 0.5. It compares every run of "
-            "X with every run of Y (unpaired), so it does not use a pairing of runs by seed.\n",
+            "interval lies above / below 0.5, \"no evidence either way\" when it contains 0.5. It compares every run "
+            "of X with every run of Y (unpaired), so it does not use a pairing of runs by seed.\n",
             f"| X vs Y | P(X > Y) [{pct}% CI] | verdict | runs per task (X vs Y) |",
             "|---|---|---|---|",
         ]

@@ -848,7 +848,8 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
         seeds = _seed_counts([c.num_seeds for c in comparisons])
         lines.append(
             f"`{c_name}` against `{b_name}` over {len(comparisons)} games, on {seeds} per game (Student-t intervals of "
-            f"the paired per-seed differences): at equal episodes {_verdict_counts([c.diff_episodes for c in comparisons])}; "
+            f"the paired per-seed differences): at equal episodes "
+            f"{_verdict_counts([c.diff_episodes for c in comparisons])}; "
             f"at equal frames {_verdict_counts([c.diff_frames for c in comparisons])}. Mean difference above 0 at "
             f"equal episodes in {ahead} of {len(comparisons)} games."
         )

@@ -423,7 +423,8 @@ def comparison_markdown(comparisons: Sequence[BaselineComparison], *, final_wind
     lines = [
         f"Paired by seed: per seed, the condition's final return (last {final_window} episodes) minus the baseline's; "
         "mean and 95% Student-t interval of those differences. Verdict "
-        "\"ahead\" / \"behind\" when the interval lies above / below 0, \"no evidence either way\" when it contains 0.\n",
+        "\"ahead\" / \"behind\" when the interval lies above / below 0, \"no evidence either way\" when it "
+        "contains 0.\n",
         "| setting | comparison | final-return difference [95% t-interval] | verdict | seeds |",
         "|---|---|---|---|---|",
     ]
