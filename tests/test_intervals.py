@@ -120,3 +120,13 @@ def test_one_interval_function_in_the_package():
     import torchrl_options.experiments.results as results
 
     assert not hasattr(results, "bootstrap_ci")
+
+
+def test_against_scipy_when_installed():
+    stats = pytest.importorskip("scipy.stats")
+    for confidence in (0.8, 0.95, 0.99):
+        for df in (1, 2, 3, 7, 14, 50, 500):
+            assert t_quantile(confidence, df) == pytest.approx(stats.t.ppf((1 + confidence) / 2, df), abs=1e-8)
+    x = np.random.default_rng(1).normal(size=5)
+    low, high = stats.t.interval(0.95, 4, loc=x.mean(), scale=stats.sem(x))
+    assert mean_interval(x)[1:] == pytest.approx((low, high), abs=1e-10)
