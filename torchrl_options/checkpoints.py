@@ -17,6 +17,7 @@ import argparse
 import os
 import pickle
 import random
+import re
 import sys
 import zipfile
 from collections.abc import Mapping
@@ -99,10 +100,11 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
     except pickle.UnpicklingError as err:
         text = str(err)
         if "weights_only" in text or "Weights only" in text or "Unsupported global" in text:
-            first = next((line for line in text.splitlines() if "Unsupported" in line), "").strip()
+            found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+            name = f"it needs {found.group(1)}" if found else "not plain data"
             raise CheckpointFileError(
                 f"{os.fspath(path)}: refusing to load this {what}: it holds Python objects that only pickle can "
-                f"rebuild, and unpickling a file can run code ({first or 'not plain data'}). {_convert_hint(path)}"
+                f"rebuild ({name}), and unpickling a file can run code. {_convert_hint(path)}"
             ) from None
         raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file (corrupt: {err}).") from None
     except (EOFError, RuntimeError, OSError, zipfile.BadZipFile, ValueError, KeyError, IndexError) as err:
