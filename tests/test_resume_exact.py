@@ -78,3 +78,47 @@ def test_checkpoint_carries_random_state(tmp_path):
     _run(cfg)
     state = load_file(tmp_path / "cells" / "supervised-A-seed0" / "dqn.pt")
     assert set(state["rng"]) >= {"torch", "numpy", "python"}
+
+
+def _atari_run(out_dir, condition):
+    import functools
+
+    import torchrl_options.experiments.atari as atari
+    from torchrl_options.experiments.results import ResultsLog
+    from torchrl_options.experiments.sweep import Cell, run_sweep
+
+    config = atari.AtariConfig(
+        max_episode_steps=60, noop_max=5, phase1_episodes=3, phase3_episodes=4, num_demonstrations=2,
+        demo_max_steps=60, options_num_cells=(8,), ddo_iterations=2, ddo_batch_size=None, hidden_sizes=(8, 8, 8),
+        learning_starts=16, frames_per_batch=16, updates_per_batch=1, hard_update_interval=20, checkpoint_every=1,
+        option_frames=False, ram_encoding="bytes", eps_init=0.3, eps_end=0.3, clip_rewards=False,
+    )  # fmt: skip
+    log = ResultsLog(Path(out_dir) / "results.csv")
+    run_sweep(functools.partial(atari.run_atari_cell, config=config, out_dir=str(out_dir)), [Cell("Atlantis", condition, 0)], log)
+    return (Path(out_dir) / "results.csv").read_bytes()
+
+
+@pytest.mark.parametrize("condition, phase", [pytest.param("A", "phase1", marks=pytest.mark.slow), ("H1", "H1")])
+def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase):
+    """Interrupted right after the first checkpoint inside phase 1 (A) or phase 3 (H1: options, executor)."""
+    pytest.importorskip("ale_py")
+    import torchrl_options.experiments.atari as atari
+
+    whole = _atari_run(tmp_path / "whole", condition)
+    returns = [line.split(b",")[4] for line in whole.splitlines()[1:]]
+    assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
+    real_save, saves = atari._atomic_save, []
+
+    def save_then_interrupt(obj, path):
+        real_save(obj, path)
+        if path.endswith(f"{phase}.partial.pt"):
+            saves.append(path)
+            raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint inside the phase
+
+    monkeypatch.setattr(atari, "_atomic_save", save_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        _atari_run(tmp_path / "cut", condition)
+    assert saves
+    monkeypatch.setattr(atari, "_atomic_save", real_save)
+    torch.manual_seed(4321)
+    assert _atari_run(tmp_path / "cut", condition) == whole
