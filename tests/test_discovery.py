@@ -124,7 +124,7 @@ def test_bad_arguments():
         discover_options(data, 2, meta_control="deep", num_iterations=1, progress=False)
     with pytest.raises(ValueError, match="empty"):
         discover_options([], 2, progress=False)
-    with pytest.raises(KeyError, match="pixels"):
+    with pytest.raises(ValueError, match="no .pixels. entry \\(obs_keys\\)"):
         discover_options(data, 2, obs_keys="pixels", progress=False)
 
 

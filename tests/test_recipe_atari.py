@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchrl_options.checkpoints import load_file
 from torchrl_options.envs.atari import ATARI_GAMES, atari_available
 from torchrl_options.experiments import ResultsLog
 from torchrl_options.experiments.atari import (
@@ -141,7 +142,7 @@ def test_periodic_checkpoint_resumes_inside_a_phase(tmp_path):
     path = str(tmp_path / "phase1.partial.pt")
     agent = _make_agent("Pooyan", config, 0, "actions")
     _train_episodes(agent, 2, path, config)
-    saved = torch.load(path, weights_only=False)
+    saved = load_file(path)
     saved_returns = list(saved["log"]["episode_returns"])  # load_state_dict keeps (and extends) these lists
     assert len(saved_returns) >= 1
     resumed = _make_agent("Pooyan", config, 0, "actions")

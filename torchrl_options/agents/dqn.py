@@ -35,6 +35,7 @@ from torchrl.envs import (
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
+from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
 from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.smdp import SMDPTransitions
@@ -143,6 +144,22 @@ def _count_executors(env: EnvBase) -> int:
     if not isinstance(env, TransformedEnv):
         return 0
     return sum(isinstance(m, OptionExecutor) for m in env.transform.modules())
+
+
+def _generators(env: EnvBase) -> dict[str, torch.Generator]:
+    """The private ``torch.Generator`` of the env and of each of its transforms (e.g. the option executor's), by
+    position; only those created so far."""
+    found = {}
+    parts = [("env", env)]
+    if isinstance(env, TransformedEnv):
+        parts = [("env", env.base_env)] + [(f"transform{i}", t) for i, t in enumerate(env.transform.modules())]
+    for name, obj in parts:
+        for attr in ("generator", "_generator", "rng", "_rng"):
+            g = vars(obj).get(attr)  # no getattr: envs and transforms forward unknown attributes
+            if isinstance(g, torch.Generator):
+                found[f"{name}.{attr}"] = g
+                break
+    return found
 
 
 class OptionsDQN:
@@ -310,6 +327,9 @@ class OptionsDQN:
         total_frames = math.ceil(total_frames / config.frames_per_batch) * config.frames_per_batch
         if total_frames <= 0:
             return self.log
+        # The collector resets the env when it is built: seed the env first, so that every call starts from a state
+        # set by the frame count alone (a run resumed from a checkpoint then starts as the uninterrupted run did)
+        self.env.set_seed(config.seed + self.frames)
         collector = Collector(
             self.env,
             self.policy,
@@ -454,29 +474,65 @@ class OptionsDQN:
 
     # ---------------------------------------------------------- checkpoints
     def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:
-        """Networks (online and target, in ``loss_module``), optimizer, epsilon, counters and log."""
+        """Networks (online and target, in ``loss_module``), optimizer, epsilon, counters, log and every random
+        state the training draws from (:func:`~torchrl_options.checkpoints.rng_state`, and the private generators
+        of the env and its transforms, such as the option executor's), as plain data: the checkpoint loads with
+        ``weights_only=True`` and a run resumed from it draws the same numbers as an uninterrupted one."""
         state = {
             "loss_module": self.loss_module.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "exploration": self.exploration.state_dict(),
             "frames": self.frames,
             "gradient_steps": self.gradient_steps,
+            # HardUpdate counts gradient steps towards its next copy of the target network
+            "target_update_counter": int(getattr(self.target_updater, "counter", 0)),
             "log": asdict(self.log),
             "config": asdict(self.config),
+            "rng": rng_state(),
+            "generators": {name: g.get_state() for name, g in _generators(self.env).items()},
         }
         if include_buffer:
             state["replay_buffer"] = self.replay_buffer.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss_module.load_state_dict(state["loss_module"])
+        """Restores :meth:`state_dict` (random states included when the checkpoint has them).
+
+        Raises:
+            ValueError: ``state`` lacks an entry, or was saved by an agent over another action space or network.
+        """
+        if not isinstance(state, dict):
+            raise TypeError(f"load_state_dict: expected a dict from OptionsDQN.state_dict, got {type(state).__name__}.")
+        missing = [k for k in ("loss_module", "optimizer", "exploration", "frames", "gradient_steps", "log") if k not in state]
+        if missing:
+            raise ValueError(f"load_state_dict: not an OptionsDQN checkpoint, missing {missing}.")
+        saved_mode = state.get("config", {}).get("mode", self.config.mode)
+        if saved_mode != self.config.mode:
+            raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
+        try:
+            self.loss_module.load_state_dict(state["loss_module"])
+        except RuntimeError as err:
+            raise ValueError(
+                "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
+                f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."
+            ) from None
         self.optimizer.load_state_dict(state["optimizer"])
         self.exploration.load_state_dict(state["exploration"])
-        self.frames = state["frames"]
-        self.gradient_steps = state["gradient_steps"]
+        self.frames = int(state["frames"])
+        self.gradient_steps = int(state["gradient_steps"])
+        if "target_update_counter" in state and hasattr(self.target_updater, "counter"):
+            self.target_updater.counter = int(state["target_update_counter"])
         self.log = TrainingLog(**{k: list(v) for k, v in state["log"].items()})
         if "replay_buffer" in state:
             self.replay_buffer.load_state_dict(state["replay_buffer"])
+        if "rng" in state:
+            set_rng_state(state["rng"])
+            generators = _generators(self.env)
+            for name, g_state in state.get("generators", {}).items():
+                if name in generators:
+                    generators[name].set_state(g_state)
+        else:
+            logger.warning("the checkpoint has no random state (older format): the resumed run is not bit-for-bit.")
 
     @torch.no_grad()
     def warm_start_from(self, source: OptionsDQN, *, copy_buffer: bool = True) -> OptionsDQN:
@@ -542,7 +598,13 @@ class OptionsDQN:
         return self
 
     def save(self, path, include_buffer: bool = False) -> None:
-        torch.save(self.state_dict(include_buffer=include_buffer), path)
+        """Writes :meth:`state_dict` to ``path`` (plain data, atomically)."""
+        save_file(self.state_dict(include_buffer=include_buffer), path)
 
     def load(self, path) -> None:
-        self.load_state_dict(torch.load(path, weights_only=False))
+        """Restores a checkpoint written by :meth:`save`, without running code from the file.
+
+        Raises:
+            ValueError: the file is missing, empty, corrupt, needs pickle, or does not fit this agent.
+        """
+        self.load_state_dict(load_file(path, what="OptionsDQN checkpoint", map_location=self.device))

@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
+from torchrl_options.discovery._validation import check_discover_options, check_trajectories
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters
 from torchrl_options.discovery.tabulated import TabulatedDDO
@@ -105,10 +106,9 @@ def as_trajectory_batch(
         >>> as_trajectory_batch(flat, trajectory_key="ids")["collector", "mask"].sum(1)
         tensor([3, 2, 2])
     """
+    check_trajectories(trajectories, trajectory_key=trajectory_key, mask_key=mask_key)
     if isinstance(trajectories, TensorDictBase):
         td = trajectories
-        if td.numel() == 0:
-            raise ValueError("trajectories is empty: discovery needs at least one step.")
         if td.ndim == 1 and trajectory_key is not None:
             return as_trajectory_batch(_split_slices(td, trajectory_key), mask_key=mask_key)
         if td.ndim == 1:
@@ -458,6 +458,7 @@ def discover_options(
         >>> options(data[0].clone())["option_logits"].shape
         torch.Size([30, 2, 2])
     """
+    check_discover_options(trajectories, num_options, options=options, meta_control=meta_control, num_actions=num_actions, action_space=action_space, obs_keys=obs_keys, action_key=action_key)  # fmt: skip
     if num_options < 1:
         raise ValueError(f"num_options must be positive, got {num_options}.")
     if not isinstance(num_iterations, int) or isinstance(num_iterations, bool) or num_iterations < 0:

@@ -7,6 +7,7 @@ from typing import Any
 import torch
 from tensordict.nn import TensorDictModuleBase
 
+from torchrl_options.checkpoints import load_file
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
 
 __all__ = ["save_options", "load_options", "module_to_dict", "module_from_dict"]
@@ -40,19 +41,37 @@ def module_to_dict(module: TensorDictModuleBase) -> dict:
     return {"class": name, "config": dict(module.config), "state_dict": {k: v.detach().cpu() for k, v in module.state_dict().items()}}
 
 
-def module_from_dict(entry: dict) -> TensorDictModuleBase:
-    """Rebuilds a module saved by :func:`module_to_dict`."""
+def module_from_dict(entry: dict, source: str = "the file") -> TensorDictModuleBase:
+    """Rebuilds a module saved by :func:`module_to_dict`.
+
+    Raises:
+        ValueError: naming ``source``, if the entry is not one of this package's modules, its configuration does
+            not build one, or its weights do not fit the configuration.
+    """
+    if not isinstance(entry, dict) or not {"class", "config", "state_dict"} <= set(entry):
+        raise ValueError(f"{source}: a module entry must hold 'class', 'config' and 'state_dict', got {_describe(entry)}.")
     cls = _CLASSES.get(entry.get("class"))
     if cls is None:
-        raise ValueError(f"unknown module class {entry.get('class')!r} in the file; expected one of {sorted(_CLASSES)}.")
+        raise ValueError(f"{source}: unknown module class {entry.get('class')!r}; expected one of {sorted(_CLASSES)}.")
+    if not isinstance(entry["config"], dict) or not isinstance(entry["state_dict"], dict):
+        raise ValueError(f"{source}: the {cls.__name__} entry's 'config' and 'state_dict' must be dicts.")
     config = dict(entry["config"])
     for key in ("in_keys", "out_keys"):
         if key in config:
             config[key] = _keys_from_config(config[key])
     if isinstance(config.get("out_key"), list):
         config["out_key"] = tuple(config["out_key"])
-    module = _build(cls, config)
-    module.load_state_dict(entry["state_dict"])
+    try:
+        module = _build(cls, config)
+    except (TypeError, ValueError, KeyError, RuntimeError) as err:
+        raise ValueError(f"{source}: the stored {cls.__name__} configuration does not build one: {err}") from None
+    try:
+        module.load_state_dict(entry["state_dict"])
+    except RuntimeError as err:
+        detail = " ".join(str(err).split())[:300]
+        raise ValueError(
+            f"{source}: the stored {cls.__name__} weights disagree with its stored configuration {config}: {detail}"
+        ) from None
     return module
 
 
@@ -64,6 +83,12 @@ def _build(cls: type, config: dict) -> TensorDictModuleBase:
     if cls is MetaControlMLP:
         return cls(config.pop("in_features"), config.pop("num_options"), **config)
     return cls(config.pop("num_options"), **config)
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, dict):
+        return f"a dict with keys {sorted(map(str, value))}"
+    return type(value).__name__
 
 
 def save_options(
@@ -116,7 +141,9 @@ def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, ma
         map_location: passed to :func:`torch.load`.
 
     Raises:
-        ValueError: if the file is not an options file of this package.
+        ValueError: naming the file, if it is missing (also a ``FileNotFoundError``), empty, truncated or
+            corrupt, needs pickle, is not an options file of this package, or its stored configuration disagrees
+            with its weights. Nothing in the file is unpickled: it loads with ``weights_only=True``.
 
     Examples:
         >>> import os, tempfile
@@ -127,11 +154,17 @@ def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, ma
         >>> type(meta).__name__, metadata
         ('MetaControlMLP', {'K': 2})
     """
-    payload = torch.load(path, map_location=map_location, weights_only=True)
+    source = os.fspath(path)
+    payload = load_file(path, what="options", map_location=map_location)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise ValueError(f"{os.fspath(path)!r} is not an options file written by torchrl_options.save_options.")
-    options = module_from_dict(payload["options"])
+        raise ValueError(
+            f"{source}: not an options file written by torchrl_options.save_options (expected format {_FORMAT!r}, "
+            f"got {_describe(payload)})."
+        )
+    if "options" not in payload:
+        raise ValueError(f"{source}: the options file has no 'options' entry.")
+    options = module_from_dict(payload["options"], source)
     if not with_meta_control:
         return options
     meta = payload.get("meta_control")
-    return options, (module_from_dict(meta) if meta is not None else None), payload.get("metadata", {})
+    return options, (module_from_dict(meta, source) if meta is not None else None), payload.get("metadata", {})

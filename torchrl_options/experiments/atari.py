@@ -49,6 +49,7 @@ import torch
 from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
+from torchrl_options.checkpoints import load_file, save_file
 from torchrl_options.experiments.intervals import interval_verdict, mean_interval, paired_difference_interval
 from torchrl_options.experiments.results import ResultsLog, smooth
 from torchrl_options.experiments.sweep import Cell, CellResult
@@ -338,9 +339,7 @@ def _close(agent) -> None:
 
 
 def _atomic_save(obj: Any, path: str) -> None:
-    tmp = path + ".tmp"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    save_file(obj, path)
 
 
 def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
@@ -358,25 +357,28 @@ def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
 
 def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig, offset: int = 0) -> None:
     """Trains ``agent`` until its log holds ``num_episodes`` episodes, checkpointing every ``checkpoint_every``
-    and evaluating (see :func:`_evaluate_if_due`; ``offset``: the cell's episodes before this agent's)."""
-    last = [len(agent.log.episode_returns)]
+    and evaluating (see :func:`_evaluate_if_due`; ``offset``: the cell's episodes before this agent's).
 
-    def callback(agent, batch):
-        n = len(agent.log.episode_returns)
-        _evaluate_if_due(agent, config, offset)
-        if config.checkpoint_every and n - last[0] >= config.checkpoint_every:
-            _atomic_save(agent.state_dict(), partial_path)
-            last[0] = n
-        return n >= num_episodes
+    Training runs in chunks of ``checkpoint_every`` episodes, each a fresh :meth:`OptionsDQN.train` (new
+    episodes, envs seeded from the frame count) ending with a checkpoint that holds every random state (and the
+    replay buffer with ``checkpoint_buffer``): a run resumed from the checkpoint is the uninterrupted run, bit for
+    bit."""
+    while len(agent.log.episode_returns) < num_episodes:
+        start = len(agent.log.episode_returns)
+        target = min(start + config.checkpoint_every, num_episodes) if config.checkpoint_every else num_episodes
 
-    if len(agent.log.episode_returns) >= num_episodes:
-        return
-    agent.train(total_frames=10**12, callback=callback)
+        def callback(agent, batch, target=target):
+            _evaluate_if_due(agent, config, offset)
+            return len(agent.log.episode_returns) >= target
+
+        agent.train(total_frames=10**12, callback=callback)
+        if config.checkpoint_every and len(agent.log.episode_returns) < num_episodes:
+            _atomic_save(agent.state_dict(include_buffer=config.checkpoint_buffer), partial_path)
 
 
 def _load_if(agent, path: str) -> bool:
     if os.path.exists(path):
-        agent.load_state_dict(torch.load(path, weights_only=False, map_location=agent.device))
+        agent.load_state_dict(load_file(path, what="Atari DQN checkpoint", map_location=agent.device))
         logger.info("resumed from %s (%d episodes)", path, len(agent.log.episode_returns))
         return True
     return False
@@ -576,7 +578,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
         copied = 0
         if flags.warm:
             # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
-            # the networks reached since (its buffer is not saved: the copied one stands in for it)
+            # the state reached since (its buffer too with checkpoint_buffer; otherwise the copied one stands in)
             agent.warm_start_from(phase1_agent)
             copied = len(agent.replay_buffer)
         _load_if(agent, partial_path)

@@ -34,6 +34,7 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
+from torchrl_options.checkpoints import load_file, save_file, tensordict_from_plain, tensordict_to_plain
 from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.run_settings import check_run_settings
@@ -84,9 +85,7 @@ def cell_dir(out_dir: str | os.PathLike, *parts: str) -> Path:
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    save_file(obj, path)
 
 
 # ------------------------------------------------------------------------------------------------ trajectories
@@ -277,7 +276,7 @@ def train_episodes(
     """
     checkpoint = None if checkpoint is None else Path(checkpoint)
     if checkpoint is not None and checkpoint.exists():
-        agent.load_state_dict(torch.load(checkpoint, weights_only=False))
+        agent.load_state_dict(load_file(checkpoint, what="DQN checkpoint", map_location=agent.device))
         logger.info("%s: resumed from %s at %d episodes", desc, checkpoint, len(agent.log.episode_returns))
     bar = None
     if progress:
@@ -353,11 +352,11 @@ def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
         def source() -> TensorDict:
             traj_path = path.with_name("greedy_trajectories.pt")
             if traj_path.exists():
-                return torch.load(traj_path, weights_only=False)
+                return tensordict_from_plain(load_file(traj_path, what="trajectories file"), str(traj_path))
             agent, _ = _pretrained_agent(cfg, cell.setting, cell.seed, progress)
             greedy = dict(setting["greedy"])
             data = greedy_trajectories(agent.actor, cfg["env"], greedy["num"], greedy["length"], 1000 * cell.seed + 7)
-            _atomic_save(data, traj_path)
+            _atomic_save(tensordict_to_plain(data), traj_path)
             return data
 
     else:

@@ -8,6 +8,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
+from torchrl_options.checkpoints import load_file
 from torchrl_options.discovery.serialization import module_from_dict, module_to_dict
 
 __all__ = ["OptionHierarchy", "load_hierarchy", "save_hierarchy"]
@@ -214,7 +215,9 @@ def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata:
     """Loads a hierarchy saved by :func:`save_hierarchy` (``(hierarchy, metadata)`` with ``with_metadata``).
 
     Raises:
-        ValueError: if the file is not a hierarchy file of this package.
+        ValueError: naming the file, if it is missing (also a ``FileNotFoundError``), empty, truncated or
+            corrupt, needs pickle, is not a hierarchy file of this package, or its stored configurations disagree
+            with its weights or with each other. Loads with ``weights_only=True``.
 
     Examples:
         >>> import os, tempfile
@@ -225,14 +228,23 @@ def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata:
         >>> hierarchy.num_options, metadata
         ([3], {'seed': 0})
     """
-    payload = torch.load(path, map_location=map_location, weights_only=True)
+    source = os.fspath(path)
+    payload = load_file(path, what="hierarchy", map_location=map_location)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise ValueError(f"{os.fspath(path)!r} is not a hierarchy file written by torchrl_options save_hierarchy.")
-    levels = [module_from_dict(e) for e in payload["levels"]]
-    metas = [None if e is None else module_from_dict(e) for e in payload["meta_controls"]]
-    hierarchy = OptionHierarchy(
-        payload["num_actions"], levels, meta_controls=metas, num_options=payload["num_options"]
-    )
+        raise ValueError(f"{source}: not a hierarchy file written by torchrl_options save_hierarchy.")
+    missing = [k for k in ("num_actions", "num_options", "levels", "meta_controls") if k not in payload]
+    if missing:
+        raise ValueError(f"{source}: the hierarchy file lacks {missing}.")
+    if not isinstance(payload["levels"], list) or not isinstance(payload["meta_controls"], list):
+        raise ValueError(f"{source}: 'levels' and 'meta_controls' must be lists.")
+    levels = [module_from_dict(e, source) for e in payload["levels"]]
+    metas = [None if e is None else module_from_dict(e, source) for e in payload["meta_controls"]]
+    try:
+        hierarchy = OptionHierarchy(
+            payload["num_actions"], levels, meta_controls=metas, num_options=payload["num_options"]
+        )
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{source}: the stored hierarchy is inconsistent: {err}") from None
     if with_metadata:
         return hierarchy, payload.get("metadata", {})
     return hierarchy

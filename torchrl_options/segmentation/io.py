@@ -3,10 +3,11 @@
 Three formats are read by :func:`load_trajectories`:
 
 **TensorDict** (a directory written by ``TensorDict.save`` / ``TensorDict.memmap``, or a ``.pt`` file written by
-``torch.save(td, path)``): a ``[B, T]`` tensordict in :class:`~torchrl_options.DDOLoss`'s layout, with
+:func:`save_trajectories`): a ``[B, T]`` tensordict in :class:`~torchrl_options.DDOLoss`'s layout, with
 ``"observation"``, ``"action"``, ``("next", "observation")`` and optionally ``("collector", "mask")`` (missing: all
 steps valid), ``("next", "terminated")``, and reference boundaries ``"true_switch"`` (bool, a segment starts at
-the step) and/or reference labels ``"true_option"``. A ``.pt`` file is unpickled: load only files you trust.
+the step) and/or reference labels ``"true_option"``. Nothing is unpickled: a ``.pt`` file is read with
+``weights_only=True`` (plain data: a dict of tensors) and a directory's pickled non-tensor entries are refused.
 
 **NumPy** ``.npz`` **and HDF5** (``.h5``/``.hdf5``, needs ``h5py``): the same arrays at the root of the file, under
 these keys. ``N`` trajectories, ``T`` steps (actions) each after padding, ``D`` observation features:
@@ -47,6 +48,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+
+from torchrl_options.checkpoints import (
+    _TD_FORMAT,
+    CheckpointFileError,
+    load_file,
+    save_file,
+    tensordict_from_plain,
+    tensordict_to_plain,
+)
 
 __all__ = ["TrajectoryFileError", "load_trajectories", "save_trajectories", "trajectories_from_arrays"]
 
@@ -364,14 +374,38 @@ def load_trajectories(path: str | Path, *, format: str = "auto") -> TensorDict:
     if fmt == "hdf5":
         return trajectories_from_arrays(_read_hdf5(path), source)
     if fmt == "tensordict":
-        if path.is_dir():
-            td = TensorDict.load(path)
-        else:
-            td = torch.load(path, weights_only=False)
-            if isinstance(td, dict):
-                td = TensorDict.from_dict(td, auto_batch_size=True, batch_dims=2)
-        return _check_tensordict(td, source)
+        return _check_tensordict(_read_tensordict(path, source), source)
     raise ValueError(f"format must be 'auto', 'npz', 'hdf5' or 'tensordict', got {format!r}.")
+
+
+def _read_tensordict(path: Path, source: str) -> TensorDictBase:
+    """A TensorDict directory (memory-mapped tensors only: pickled entries are refused) or a ``.pt`` file of plain
+    data (loaded with ``weights_only=True``)."""
+    if path.is_dir():
+        if not (path / "meta.json").exists():
+            raise TrajectoryFileError(f"{source}: not a TensorDict directory (no meta.json).")
+        try:
+            return TensorDict.load_memmap(path, allow_pickle=False).to_tensordict()
+        except RuntimeError as err:
+            if "pickle" in str(err).lower():
+                raise TrajectoryFileError(
+                    f"{source}: holds pickled (non-tensor) entries; unpickling can run code, so they are not read. "
+                    "Save the trajectories with tensors only."
+                ) from None
+            raise TrajectoryFileError(f"{source}: not a readable TensorDict directory ({err}).") from None
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise TrajectoryFileError(f"{source}: not a readable TensorDict directory ({type(err).__name__}: {err}).") from None
+    try:
+        data = load_file(path, what="trajectories file")
+    except CheckpointFileError as err:
+        raise TrajectoryFileError(str(err)) from None
+    if isinstance(data, Mapping) and data.get("format") == _TD_FORMAT:
+        return tensordict_from_plain(data, source)
+    if isinstance(data, Mapping) and data and all(isinstance(v, (torch.Tensor, Mapping)) for v in data.values()):
+        return TensorDict.from_dict(dict(data), auto_batch_size=True, batch_dims=2)
+    raise TrajectoryFileError(
+        f"{source}: expected trajectories (a dict of tensors, as save_trajectories writes), got {type(data).__name__}."
+    )
 
 
 def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: str | None = "true_switch") -> Path:
@@ -396,7 +430,7 @@ def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: 
         data.save(path)
         return path
     if suffix in (".pt", ".pth"):
-        torch.save(data.to_tensordict() if data.is_memmap() else data, path)
+        save_file(tensordict_to_plain(data), path)
         return path
     B, T = data.batch_size
     mask = data.get(_MASK, torch.ones(B, T, dtype=torch.bool)).reshape(B, T)

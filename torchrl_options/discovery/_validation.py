@@ -1,0 +1,231 @@
+"""Input checks of the discovery entry points (:func:`~torchrl_options.discover_options`,
+:func:`~torchrl_options.as_trajectory_batch`, :func:`~torchrl_options.discover_hierarchy`,
+:func:`~torchrl_options.segment`): every bad input is refused at the door with a ``ValueError`` (``TypeError`` for
+a wrong type) that names the argument or key, what was expected and what came.
+
+The checks read shapes and dtypes, plus one pass over the valid steps' values (non-finite observations, action
+range) and one forward of the options module on a single step: cheap next to one E-step.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+
+__all__ = [
+    "check_trajectories",
+    "check_step_data",
+    "check_options_module",
+    "check_discover_options",
+    "check_int",
+]
+
+_MASK = ("collector", "mask")
+
+
+def _steps(td: TensorDictBase) -> int:
+    # TensorDict.numel() is never below 1 (a [0] tensordict has numel() == 1): count from the batch size
+    return int(math.prod(td.batch_size))
+
+
+def check_int(value: Any, name: str, *, minimum: int | None = None, allow_none: bool = False) -> None:
+    """Refuses a non-int (``TypeError``; ``bool`` and ``2.0`` are not ints) or one below ``minimum`` (``ValueError``).
+
+    Examples:
+        >>> check_int(3, "num_options", minimum=1)
+        >>> check_int(2.5, "num_options", minimum=1)
+        Traceback (most recent call last):
+        ...
+        TypeError: num_options must be an int, got 2.5 (float).
+    """
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an int{' or None' if allow_none else ''}, got {value!r} ({type(value).__name__}).")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value}.")
+
+
+def check_trajectories(trajectories: Any, *, trajectory_key: NestedKey | None = None, mask_key: NestedKey = _MASK) -> None:
+    """Checks what :func:`~torchrl_options.as_trajectory_batch` accepts, before it pads or splits anything."""
+    if isinstance(trajectories, TensorDictBase):
+        td = trajectories
+        if _steps(td) == 0:
+            raise ValueError(f"trajectories is empty (batch_size {list(td.batch_size)}): discovery needs at least one step.")
+        if td.ndim not in (1, 2):
+            raise ValueError(f"trajectories must be [B, T] (or one [T] trajectory), got batch_size {list(td.batch_size)}.")
+        if trajectory_key is not None and td.ndim == 1 and trajectory_key not in td.keys(include_nested=True):
+            raise ValueError(f"the sample has no {trajectory_key!r} entry (trajectory_key).")
+        mask = td.get(mask_key, None)
+        if mask is not None:
+            _check_mask(mask, td.batch_size, mask_key)
+        return
+    if isinstance(trajectories, (str, bytes)) or not isinstance(trajectories, Sequence):
+        raise TypeError(
+            "trajectories must be a TensorDict ([B, T] or [T]) or a list of [T_i] TensorDicts, got "
+            f"{type(trajectories).__name__}."
+        )
+    if len(trajectories) == 0:
+        raise ValueError("trajectories is an empty list: discovery needs at least one trajectory.")
+    keys0 = None
+    for i, t in enumerate(trajectories):
+        if not isinstance(t, TensorDictBase):
+            raise TypeError(f"trajectories[{i}] must be a [T] TensorDict, got {type(t).__name__}.")
+        if t.ndim != 1:
+            raise ValueError(f"trajectories[{i}] must be a [T] TensorDict (one trajectory), got batch_size {list(t.batch_size)}.")
+        if _steps(t) == 0:
+            raise ValueError(f"trajectories[{i}] is empty (0 steps): every trajectory needs at least one step.")
+        keys = set(t.keys(include_nested=True, leaves_only=True))
+        if keys0 is None:
+            keys0 = keys
+        elif keys != keys0:
+            raise ValueError(
+                f"trajectories[{i}] has other entries than trajectories[0]: missing {sorted(map(str, keys0 - keys))}, "
+                f"extra {sorted(map(str, keys - keys0))}."
+            )
+        mask = t.get(mask_key, None)
+        if mask is not None:
+            _check_mask(mask, t.batch_size, f"trajectories[{i}] {mask_key!r}")
+
+
+def _check_mask(mask: torch.Tensor, batch_size: torch.Size, name: Any) -> None:
+    if mask.dtype != torch.bool:
+        raise ValueError(f"the mask {name!r} must be bool (True at valid steps), got dtype {mask.dtype}.")
+    shape = tuple(mask.shape)
+    if shape not in (tuple(batch_size), (*batch_size, 1)):
+        raise ValueError(f"the mask {name!r} must have shape {list(batch_size)}, got {list(shape)}.")
+
+
+def check_step_data(
+    data: TensorDictBase,
+    *,
+    obs_keys: Sequence[NestedKey],
+    action_key: NestedKey,
+    action_space: str = "categorical",
+    num_actions: int | None = None,
+    mask_key: NestedKey = _MASK,
+    terminal_key: NestedKey = ("next", "terminated"),
+) -> None:
+    """Checks a ``[B, T]`` batch (after :func:`~torchrl_options.as_trajectory_batch`): entries present, shapes that
+    agree, bool mask with a valid step per row, finite observations, actions in range."""
+    B, T = data.batch_size
+    keys = set(data.keys(include_nested=True, leaves_only=True))
+    mask = data.get(mask_key)
+    _check_mask(mask, data.batch_size, mask_key)
+    mask = mask.reshape(B, T)
+    empty = (~mask.any(1)).nonzero()
+    if empty.numel():
+        raise ValueError(f"trajectory {int(empty[0])} has no valid step (its {mask_key!r} is all False).")
+    if action_key not in keys:
+        raise ValueError(f"the trajectories have no {action_key!r} entry (action_key); entries: {sorted(map(str, keys))}.")
+    for key in obs_keys:
+        if key not in data.keys(include_nested=True):
+            raise ValueError(f"the trajectories have no {key!r} entry (obs_keys); entries: {sorted(map(str, keys))}.")
+        obs = data.get(key)
+        nxt_key = ("next", *((key,) if isinstance(key, str) else key))
+        nxt = data.get(nxt_key, None)
+        if nxt is not None and nxt.shape != obs.shape:
+            raise ValueError(
+                f"{nxt_key!r} must have the shape of {key!r}, {list(obs.shape)}, got {list(nxt.shape)}."
+            )
+        if obs.is_floating_point():
+            bad = ~torch.isfinite(obs.reshape(B, T, -1)).all(-1) & mask
+            if bad.any():
+                b, t = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(f"{key!r} holds NaN or inf at trajectory {b}, step {t} (a valid step).")
+    term = data.get(terminal_key, None)
+    if term is not None and tuple(term.shape) not in ((B, T), (B, T, 1)):
+        raise ValueError(f"{terminal_key!r} must have shape [B, T] or [B, T, 1] = {[B, T]}, got {list(term.shape)}.")
+    action = data.get(action_key)
+    if tuple(action.shape[:2]) != (B, T):
+        raise ValueError(f"{action_key!r} must be [B, T, ...] = {[B, T]}, got {list(action.shape)}.")
+    if action_space == "categorical" and action.ndim == 2 or (action.ndim == 3 and action.shape[-1] == 1 and action_space == "categorical"):
+        valid = action.reshape(B, T)[mask]
+        if valid.is_floating_point() and not torch.equal(valid, valid.round()):
+            raise ValueError(
+                f"{action_key!r} holds non-integer values ({action.dtype}) but action_space='categorical': pass integer "
+                "actions, or action_space='continuous'."
+            )
+        if (valid < 0).any():
+            raise ValueError(f"{action_key!r} holds negative actions ({int(valid.min())}): actions are 0 .. A-1.")
+        if num_actions is not None and (valid >= num_actions).any():
+            raise ValueError(f"{action_key!r} holds action {int(valid.max())}, outside [0, num_actions={num_actions}).")
+    if action_space == "continuous" and not action.is_floating_point():
+        raise ValueError(f"action_space='continuous' needs float actions, {action_key!r} has dtype {action.dtype}.")
+
+
+def check_options_module(
+    options: TensorDictModuleBase,
+    data: TensorDictBase,
+    num_options: int,
+    *,
+    num_actions: int | None = None,
+    action_space: str = "categorical",
+    name: str = "options",
+) -> None:
+    """Runs ``options`` on one step of ``data`` and checks what it writes against ``num_options`` (and
+    ``num_actions``): a module of another K, or one that cannot read the observations, is refused here."""
+    if not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"{name} must be a TensorDictModuleBase, got {type(options).__name__}.")
+    step = data[:1, :1].clone(False)
+    try:
+        with torch.no_grad():
+            out = options(step.to(next(iter(options.parameters()), torch.empty(0)).device))
+    except (RuntimeError, KeyError, ValueError, IndexError) as err:
+        detail = " ".join(str(err).split())[:200]
+        shapes = {str(k): list(step.get(k).shape[2:]) for k in getattr(options, "in_keys", []) if k in step.keys(True)}
+        raise ValueError(
+            f"the {name} module cannot read the trajectories (per-step entry shapes {shapes}; another observation "
+            f"size than it was built for?): {type(err).__name__}: {detail}"
+        ) from None
+    term = out.get("termination_logits", None)
+    if term is None:
+        raise ValueError(f"the {name} module must write 'termination_logits' [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    if int(term.shape[-1]) != num_options:
+        raise ValueError(f"num_options={num_options} but the {name} module has K={int(term.shape[-1])} options.")
+    logits = out.get("option_logits", None)
+    if action_space == "categorical" and logits is not None and num_actions is not None and logits.shape[-1] != num_actions:
+        raise ValueError(f"num_actions={num_actions} but the {name} module has A={int(logits.shape[-1])} actions.")
+
+
+def check_discover_options(
+    trajectories: Any,
+    num_options: Any,
+    *,
+    options: Any = None,
+    meta_control: Any = "uniform",
+    num_actions: Any = None,
+    action_space: str = "categorical",
+    obs_keys: Any = "observation",
+    action_key: NestedKey = "action",
+) -> None:
+    """All of :func:`~torchrl_options.discover_options`' input checks that read the data (the scalar settings
+    are checked in the function). Replay buffers are checked when sampled."""
+    from torchrl.data import ReplayBuffer
+
+    from torchrl_options.discovery.discover import as_trajectory_batch
+
+    check_int(num_options, "num_options", minimum=1)
+    check_int(num_actions, "num_actions", minimum=1, allow_none=True)
+    if options is not None and not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"options must be None or a TensorDictModuleBase, got {type(options).__name__}.")
+    if not isinstance(meta_control, (str, TensorDictModuleBase)):
+        raise TypeError(f"meta_control must be 'uniform', 'learned' or a module, got {type(meta_control).__name__}.")
+    if isinstance(trajectories, ReplayBuffer):
+        return
+    data = as_trajectory_batch(trajectories)
+    keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
+    check_step_data(data, obs_keys=keys, action_key=action_key, action_space=action_space, num_actions=num_actions)
+    if options is not None:
+        check_options_module(options, data, num_options, num_actions=num_actions, action_space=action_space)
+    if isinstance(meta_control, TensorDictModuleBase):
+        out = meta_control(data[:1, :1].clone(False))
+        logits = out.get("meta_logits", None)
+        if logits is not None and logits.shape[-1] != num_options:
+            raise ValueError(f"num_options={num_options} but the meta_control module writes {logits.shape[-1]} meta_logits.")
