@@ -379,6 +379,26 @@ class DDOLossBase(LossModule):
         diagnostics (bool): write the posterior diagnostics next to ``loss_ddo`` and ``log_likelihood_per_step``.
             Defaults to ``True``.
         backend (str): the E-step's backend, one of the subclass's ``BACKENDS``. Defaults to ``"auto"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options import DDOLoss, OptionsMLP
+        >>> loss = DDOLoss(OptionsMLP(3, 4, 2))
+        >>> isinstance(loss, DDOLossBase), loss.functional, loss.mask_keys
+        (True, True, [('collector', 'mask'), 'shifted_valid'])
+        >>> net = loss.get_stateful_net("options")  # a copy holding the loss's parameters
+        >>> loss.reset_parameters_recursive()  # new parameters for the loss (and its options module)
+        >>> loss.from_stateful_net("options", net)  # back to the copied ones
+        >>> torch.equal(net.control.params["0", "weight"], loss.options_params["control", "params", "0", "weight"])
+        True
+        >>> data = TensorDict({"observation": torch.randn(2, 5, 3), "action": torch.randint(4, (2, 5)),
+        ...                    "next": {"observation": torch.randn(2, 5, 3)}}, [2, 5])
+        >>> data["observation"][0, 0] = float("nan")
+        >>> loss(data)
+        Traceback (most recent call last):
+            ...
+        ValueError: 'observation' holds NaN or inf at valid step (b, t) = (0, 0).
     """
 
     @dataclass
