@@ -84,6 +84,18 @@ def test_summary_intervals_are_t_intervals_over_seeds():
     assert a.final_return[2] - a.final_return[0] == pytest.approx(half, rel=1e-6)
 
 
+def test_episode_count_intervals_stay_within_the_possible_counts():
+    # seed 0 reaches the target at once, seed 1 at episode 5, seed 2 never: counts 2, 5, 10 (its length)
+    rows = [{"setting": "s", "condition": c, "seed": seed, "episode": i, "return": v}
+            for seed, first in ((0, 0), (1, 3), (2, 99)) for c in ("A", "H1u") for i, v in
+            enumerate([float(i >= first) for i in range(10)] if c == "H1u" else [1.0] * 10)]
+    by = {x.condition: x for x in summarize(rows, final_window=2, smooth_window=2)}
+    m, lo, hi = by["H1u"].episodes_to_baseline
+    raw = mean_interval([2, 5, 10])
+    assert m == pytest.approx(17 / 3) and raw[1] < 2 and raw[2] > 10  # the bare t-interval leaves [2, 10]
+    assert (lo, hi) == (2.0, 10.0) and by["H1u"].reached == 2
+
+
 def test_compare_to_baseline_pairs_by_seed(tmp_path):
     log = ResultsLog(tmp_path / "results.csv")
     gains = {0: 0.10, 1: 0.12, 2: 0.08, 3: 0.11}
@@ -184,3 +196,28 @@ def test_sweep_bad_backend(tmp_path):
 
     with pytest.raises(ValueError, match="backend"):
         run_sweep(_constant_cell, [Cell("t", "A", 0)], ResultsLog(tmp_path / "r.csv"), backend="slurm")
+
+
+@pytest.mark.parametrize(
+    "folder, expected",
+    [
+        ("four_rooms_default", {"A": "0.283 [0.147, 0.420]", "H1u - A": "+0.180 [+0.072, +0.288] | ahead",
+                                "H1s - A": "+0.167 [-0.045, +0.378] | no evidence either way"}),
+        ("four_rooms_dqn64", {"A": "0.340 [0.146, 0.534]", "H1u - A": "+0.067 [-0.271, +0.404] | no evidence"}),
+        ("four_rooms_default_1000", {"H2u": "0.830 [0.679, 0.981]", "H2u - A": "+0.427 [+0.302, +0.552] | ahead"}),
+    ],
+)
+def test_kept_results_back_the_readme(tmp_path, folder, expected):
+    """The README's re-derived GridWorld figures, recomputed from the results kept under results/."""
+    import gzip
+    import os
+
+    from torchrl_options.experiments.gridworld import write_summary
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with gzip.open(os.path.join(root, "results", folder, "results.csv.gz"), "rt") as f:
+        (tmp_path / "results.csv").write_text(f.read())
+    text = write_summary(tmp_path / "results.csv", tmp_path / "out", "kept", {"final_window": 100, "smooth_window": 50})
+    for name, figure in expected.items():
+        row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | 3 |"
+        assert any(line.startswith(row) and figure in line for line in text.splitlines()), (name, figure)

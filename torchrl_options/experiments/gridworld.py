@@ -423,9 +423,10 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
 def reach_table(log, target: float, window: int) -> str:
     """Markdown: per setting and condition, the episodes each seed needs for its ``window``-episode mean
     return to reach ``target`` (e.g. the two-rooms convergence of appendix B: a return of 1.0), with a 95%
-    Student-t interval over seeds; seeds that never reach it count with all their episodes."""
+    Student-t interval over seeds (cut to the counts possible); seeds that never reach it count with all their
+    episodes."""
     from torchrl_options.experiments.intervals import mean_interval
-    from torchrl_options.experiments.results import _count, episodes_to_reach
+    from torchrl_options.experiments.results import _count, episodes_to_reach, within
 
     lines = [
         f"| setting | condition | episodes to a {window}-episode mean return of {target:g} [95% t-interval] | "
@@ -439,7 +440,8 @@ def reach_table(log, target: float, window: int) -> str:
             n = episodes_to_reach(returns, target, window)
             reached += n is not None
             counts.append(len(returns) if n is None else n)
-        m, lo, hi = mean_interval(counts)
+        lengths = [len(r) for r in runs.values()]
+        m, lo, hi = within(mean_interval(counts), min(window, *lengths), max(lengths))
         lines.append(f"| {setting} | {condition} | {_count(m)} [{_count(lo)}, {_count(hi)}] | {reached}/{len(runs)} |")
     return "\n".join(lines) + "\n"
 

@@ -32,6 +32,7 @@ __all__ = [
     "merge_results",
     "ResultsLog",
     "episodes_to_reach",
+    "within",
     "ConditionSummary",
     "summarize",
     "summary_markdown",
@@ -233,6 +234,20 @@ def _cells(log: ResultsLog) -> dict[tuple[str, str, int], tuple[list[float], lis
     return out
 
 
+def within(interval: tuple[float, float, float], low: float, high: float) -> tuple[float, float, float]:
+    """``interval`` ``(mean, low, high)`` intersected with the range ``[low, high]`` the quantity can take.
+
+    The mean of a quantity that lies in ``[low, high]`` does too, so the intersection keeps the interval's coverage
+    (e.g. episode counts: a Student-t interval over 3 seeds can reach below 0).
+
+    Examples:
+        >>> within((329.0, -407.0, 1066.0), 50, 1000)
+        (329.0, 50.0, 1000.0)
+    """
+    m, lo, hi = interval
+    return m, float(min(max(lo, low), high)), float(max(min(hi, high), low))
+
+
 def smooth(returns: Sequence[float], window: int) -> np.ndarray:
     """Trailing moving average (the first entries average what is there)."""
     x = np.asarray(returns, dtype=float)
@@ -284,7 +299,8 @@ def summarize(
     setting is the baseline condition's mean final return; a seed reaches it at the first episode where its
     ``smooth_window`` moving average does. Seeds that never reach it count with their total number of episodes
     (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are Student-t intervals over
-    seeds (:func:`~torchrl_options.experiments.intervals.mean_interval`; one seed gives an unbounded interval).
+    seeds (:func:`~torchrl_options.experiments.intervals.mean_interval`; one seed gives an unbounded interval), those
+    of episode counts cut to the counts possible (from ``smooth_window`` to the number of episodes, :func:`within`).
 
     Examples:
         >>> rows = [{"setting": "s", "condition": c, "seed": 0, "episode": i, "return": float(i >= n)}
@@ -292,7 +308,7 @@ def summarize(
         >>> [(x.condition, x.episodes_to_baseline[0]) for x in summarize(rows, final_window=2, smooth_window=2)]
         [('A', 8.0), ('H1u', 4.0)]
         >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
-        | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [-inf, inf] | 1/1 |
+        | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [2, 10] | 1/1 |
     """
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
@@ -319,7 +335,8 @@ def summarize(
                 n = episodes_to_reach(v, targets[setting], smooth_window)
                 reached += n is not None
                 counts.append(len(v) if n is None else n)
-            to_reach = mean_interval(counts, confidence=confidence)
+            lengths = [len(v) for v in seeds.values()]
+            to_reach = within(mean_interval(counts, confidence=confidence), min(smooth_window, *lengths), max(lengths))
         out.append(
             ConditionSummary(
                 setting=setting,
