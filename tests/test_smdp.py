@@ -302,13 +302,16 @@ def test_replay_buffer_transform_equals_function_path(extras):
     for batch in batches:
         parts = [smdp(batch)]
         if extras:
-            parts += [intra_option_transitions(batch, num_actions=2), option_suffix_transitions(batch, gamma, action_offset=2)]
+            parts.append(intra_option_transitions(batch, num_actions=2))
+            parts.append(option_suffix_transitions(batch, gamma, action_offset=2))
             for i, part in enumerate(parts):
                 part["intra_option"] = torch.full(part.shape, i > 0)
         expected.append(torch.cat(parts))
     expected = torch.cat(expected)
     assert (expected["steps_to_next_obs"] > 1).any()  # options ran
-    transform = SMDPTransform(gamma, intra_option_actions=extras, option_suffixes=extras, num_actions=2 if extras else None)
+    transform = SMDPTransform(
+        gamma, intra_option_actions=extras, option_suffixes=extras, num_actions=2 if extras else None
+    )
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=8)
     rb.append_transform(transform)
     for batch in batches:
