@@ -139,6 +139,15 @@ class TrainingLog:
     evaluations: list[list[float]] = field(default_factory=list)
 
 
+def _seed_executors(env: EnvBase, seed: int) -> None:
+    """Seeds the private generators of the executors of ``env`` (one stream per level), as ``collector.set_seed``
+    seeds the env: the options' draws neither depend on nor shift the exploration's."""
+    if isinstance(env, TransformedEnv):
+        for executor in env.transform.modules():
+            if isinstance(executor, OptionExecutor):
+                executor.set_seed(seed * 1_000_003 + 7_919 * executor.level)
+
+
 def _count_executors(env: EnvBase) -> int:
     # (batched envs forward unknown attributes to their workers: only look inside a TransformedEnv)
     if not isinstance(env, TransformedEnv):
@@ -299,9 +308,8 @@ class OptionsDQN:
                 greedy=config.greedy_options,
                 level=self._executor_level,
             )
-            # the options' draws have their own stream: they do not shift the exploration's
-            executor.set_seed(config.seed + 7_919 * self._executor_level)
             env = env.append_transform(executor)
+            _seed_executors(env, config.seed)  # the options' draws have their own stream, apart from exploration's
         if config.max_decisions is not None:
             # counts the decisions of the top executor (the policy's), or every step without an executor
             env = env.append_transform(DecisionCounter(config.max_decisions, level=_count_executors(env) or None))
@@ -344,6 +352,7 @@ class OptionsDQN:
             auto_register_policy_transforms=False,
         )
         collector.set_seed(config.seed + self.frames)
+        _seed_executors(self.env, config.seed + self.frames)
         self.smdp.reset()  # the collector starts new episodes
         try:
             for batch in collector:
@@ -429,9 +438,7 @@ class OptionsDQN:
         finally:
             self.config.num_envs = saved
         env.set_seed(self.config.seed + 10_000)
-        for executor in env.transform.modules() if isinstance(env, TransformedEnv) else ():
-            if isinstance(executor, OptionExecutor):
-                executor.set_seed(self.config.seed + 10_000 + 7_919 * executor.level)
+        _seed_executors(env, self.config.seed + 10_000)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
         env.close()

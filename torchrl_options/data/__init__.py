@@ -3,4 +3,10 @@ the primitive actions that options took."""
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.smdp import SMDPTransform, SMDPTransitions, smdp_transitions
 
-__all__ = ["SMDPTransform", "SMDPTransitions", "intra_option_transitions", "option_suffix_transitions", "smdp_transitions"]
+__all__ = [
+    "SMDPTransform",
+    "SMDPTransitions",
+    "intra_option_transitions",
+    "option_suffix_transitions",
+    "smdp_transitions",
+]

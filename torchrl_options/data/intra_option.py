@@ -92,7 +92,9 @@ def intra_option_transitions(
     option_key, reward_key, steps_key = unravel_key(executed_option_key), unravel_key(reward_key), unravel_key(steps_key)
     for key in (option_key, executed_action_key):
         if data.get(key, None) is None:
-            raise ValueError(f"intra_option_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
+            raise ValueError(
+                f"intra_option_transitions: data has no {key!r} entry (collect through an OptionExecutor)."
+            )
     flat = data.reshape(-1)
     option = flat.get(option_key).reshape(flat.shape[0], -1)
     if option.shape[-1] != 1:
@@ -186,7 +188,9 @@ def option_suffix_transitions(
     reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)
     for key in (option_key, decision_key, reward_key, done_key):
         if data.get(key, None) is None:
-            raise ValueError(f"option_suffix_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
+            raise ValueError(
+                f"option_suffix_transitions: data has no {key!r} entry (collect through an OptionExecutor)."
+            )
     T = data.shape[-1]
     rows = data.reshape(-1, T)
     N = rows.shape[0]

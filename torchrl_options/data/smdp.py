@@ -387,14 +387,18 @@ class SMDPTransform(Transform):
         for name, value in (("intra_option_actions", intra_option_actions), ("option_suffixes", option_suffixes)):
             if not isinstance(value, bool):
                 raise TypeError(f"SMDPTransform: {name} must be a bool, got {value!r}.")
-        if num_actions is not None and (isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1):
+        if num_actions is not None and (
+            isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1
+        ):
             raise ValueError(f"SMDPTransform: num_actions must be a positive int or None, got {num_actions!r}.")
         if intra_option_actions and num_actions is None:
             raise ValueError(
                 "SMDPTransform: intra_option_actions=True needs num_actions (the executor's primitive actions A)."
             )
         if option_suffixes and discount_per != "step":
-            raise ValueError("SMDPTransform: option_suffixes=True discounts per primitive step: it needs discount_per='step'.")
+            raise ValueError(
+                "SMDPTransform: option_suffixes=True discounts per primitive step: it needs discount_per='step'."
+            )
         self.smdp = SMDPTransitions(
             gamma,
             decision_key=decision_key,
@@ -476,7 +480,8 @@ class SMDPTransform(Transform):
 
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(gamma={self.gamma}, discount_per={'decision' if self.smdp.per_decision else 'step'!r}, "
+            f"{type(self).__name__}(gamma={self.gamma}, "
+            f"discount_per={'decision' if self.smdp.per_decision else 'step'!r}, "
             f"intra_option_actions={self.intra_option_actions}, option_suffixes={self.option_suffixes}, "
             f"num_actions={self.num_actions})"
         )

@@ -331,6 +331,7 @@ class OptionExecutor(Transform):
             raise TypeError(f"OptionExecutor.set_seed: seed must be an int or None, got {seed!r}.")
         self._seed = seed
         self.__dict__.pop("_generators", None)
+        self.__dict__.pop("_consts", None)  # they hold the generator of the draws
 
     @property
     def generator(self) -> torch.Generator | None:
@@ -462,6 +463,9 @@ class OptionExecutor(Transform):
         positions = None
         if type(options) is TensorDictModule and options.method is None and not options.method_kwargs:
             out_keys = [unravel_key(k) for k in options.out_keys_source]
+            if self.option_logits_key not in out_keys or self.termination_logits_key not in out_keys:
+                self.__dict__["_direct_call_state"] = (options, None, None)
+                return None
             i, j = out_keys.index(self.option_logits_key), out_keys.index(self.termination_logits_key)
             out = options(tensordict.select(*self._options_in_keys))
             expected = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
