@@ -125,6 +125,37 @@ class OptionsDQNConfig:
     seed: int = 0
     device: str = "cpu"
 
+    def __post_init__(self) -> None:
+        """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
+        from torchrl_options.discovery._validation import check_int
+
+        choices = {"mode": ("actions", "options", "both"), "discount_per": ("step", "decision"),
+                   "target_update": ("hard", "soft"), "loss_function": ("l2", "l1", "smooth_l1")}  # fmt: skip
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}.")
+        for name, minimum in (("num_envs", 1), ("total_frames", 0), ("frames_per_batch", 1), ("buffer_size", 1),
+                              ("batch_size", 1), ("learning_starts", 0), ("updates_per_batch", 0),
+                              ("eps_annealing_frames", 1), ("hard_update_interval", 1), ("seed", 0)):  # fmt: skip
+            check_int(getattr(self, name), name, minimum=minimum)
+        check_int(self.max_decisions, "max_decisions", minimum=1, allow_none=True)
+        for name, lo, hi, lo_open, hi_open in (("lr", 0, math.inf, True, True), ("gamma", 0, 1, False, False),
+                                               ("eps_init", 0, 1, False, False), ("eps_end", 0, 1, False, False),
+                                               ("soft_update_eps", 0, 1, True, True)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__}).")
+            if not (lo < value if lo_open else lo <= value) or not (value < hi if hi_open else value <= hi) or math.isnan(value):
+                interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+                raise ValueError(f"{name} must be in {interval}, got {value}.")
+        if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
+            raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
+        sizes = self.hidden_sizes
+        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
+            isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+        ):
+            raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
+
 
 @dataclass
 class TrainingLog:
