@@ -538,7 +538,7 @@ class OptionsDQN:
             raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
         try:
             self.loss_module.load_state_dict(state["loss_module"])
-        except RuntimeError as err:
+        except (RuntimeError, ValueError, KeyError) as err:
             raise ValueError(
                 "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
                 f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."

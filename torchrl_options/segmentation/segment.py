@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from torchrl_options.discovery._validation import check_options_module, check_step_data
 from torchrl_options.discovery import as_trajectory_batch, DiscoveryResult
 from torchrl_options.inference import forward_backward, most_likely_options, viterbi
 from torchrl_options.objectives import DDOLoss
@@ -162,6 +163,8 @@ def segment(
         meta_control = options.meta_control if meta_control is None else meta_control
         options = options.options
     data = as_trajectory_batch(trajectories, mask_key=mask_key)
+    check_step_data(data, obs_keys=[], action_key=action_key, action_space=action_space, mask_key=mask_key, terminal_key=terminal_key)  # fmt: skip
+    check_options_module(options, data, None, action_space=action_space)
     loss = DDOLoss(options, meta_control, action_space=action_space)
     loss.set_keys(action=action_key, mask=mask_key, terminal=terminal_key)
     B = data.batch_size[0]
