@@ -219,6 +219,14 @@ def _agent(hidden=(2,)):
     return make_agent(cfg, "actions", 0)
 
 
+def _dqn_with(**kw):
+    from torchrl_options import GridWorldEnv, OptionsDQN
+
+    args = {"env_factory": lambda: GridWorldEnv("two-rooms", task="goal"), "config": OptionsDQNConfig(mode="both"),
+            "options": OptionsMLP(4, 4, 2), "num_options": 2, **kw}  # fmt: skip
+    return OptionsDQN(args.pop("env_factory"), args.pop("config"), **args)
+
+
 def _dqn_file(path):
     _agent().save(path)
     return path
@@ -249,6 +257,13 @@ CONFIGS = [
     ("dqn max_decisions 0", lambda: OptionsDQNConfig(max_decisions=0), ValueError, "max_decisions must be an int >= 1"),
     ("dqn num_envs 0", lambda: OptionsDQNConfig(num_envs=0), ValueError, "num_envs must be an int >= 1"),
     ("dqn soft_update_eps 1", lambda: OptionsDQNConfig(soft_update_eps=1.0), ValueError, "soft_update_eps must be in (0, 1)"),
+    ("OptionsDQN num_options 2.5", lambda: _dqn_with(num_options=2.5), TypeError, "num_options must be an int"),
+    ("OptionsDQN num_options 0", lambda: _dqn_with(num_options=0), ValueError, "num_options must be an int >= 1"),
+    ("OptionsDQN options not a module", lambda: _dqn_with(options=torch.nn.Linear(2, 2)), TypeError,
+     "options must be a TensorDictModuleBase"),
+    ("OptionsDQN without options", lambda: _dqn_with(options=None), ValueError, "needs `options` and `num_options`"),
+    ("OptionsDQN env_factory not callable", lambda: _dqn_with(env_factory=3), TypeError, "env_factory must be a callable"),
+    ("OptionsDQN config of another type", lambda: _dqn_with(config={"mode": "both"}), TypeError, "config must be an OptionsDQNConfig"),
     ("atari phase1_episodes -5", lambda: AtariConfig(phase1_episodes=-5), ValueError, "phase1_episodes must be an int >= 1"),
     ("atari gamma 2", lambda: AtariConfig(gamma=2.0), ValueError, "gamma must be a number in [0.0, 1.0]"),
     ("atari ram_encoding", lambda: AtariConfig(ram_encoding="pixels"), ValueError, "ram_encoding must be 'one_hot' or 'bytes'"),

@@ -248,10 +248,20 @@ class OptionsDQN:
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
     ):
         self.config = config = config or OptionsDQNConfig()
+        if not isinstance(config, OptionsDQNConfig):
+            raise TypeError(f"config must be an OptionsDQNConfig, got {type(config).__name__}.")
         if config.mode not in ("actions", "options", "both"):
             raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
         if config.mode != "actions" and (options is None or num_options is None):
             raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+        if not callable(env_factory):
+            raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
+        if num_options is not None:
+            from torchrl_options.discovery._validation import check_int
+
+            check_int(num_options, "num_options", minimum=1)
+        if options is not None and not isinstance(options, TensorDictModuleBase):
+            raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
         torch.manual_seed(config.seed)
         self._executor_level = 0
         self.env_factory = env_factory

@@ -246,10 +246,11 @@ class AtariConfig:
                 d[key] = tuple(d[key])
         return cls(**d)
 
-    #: fields that change how a cell runs (device, threads, checkpoints, pictures, greedy evaluation, which leaves
-    #: training's random numbers untouched, fused Adam, the same algorithm), not the episodes it records
+    #: fields that change how a cell runs (device, threads, pictures, greedy evaluation, which leaves training's
+    #: random numbers untouched, fused Adam, the same algorithm), not the episodes it records. ``checkpoint_every``
+    #: is not one of them: training restarts its episodes at each checkpoint (what makes resuming exact)
     RUN_ONLY_FIELDS: ClassVar[tuple[str, ...]] = (
-        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_every", "checkpoint_buffer", "eval_every",
+        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_buffer", "eval_every",
         "eval_episodes", "option_frames", "option_frames_max_steps",
     )  # fmt: skip
 

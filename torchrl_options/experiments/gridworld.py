@@ -439,10 +439,11 @@ def reach_table(log, target: float, window: int) -> str:
 
 
 #: Recipe keys that choose which cells run, how they run or how the summary reads: a run may be resumed with
-#: other values of these; every other key defines the cells (:func:`check_run_settings`).
+#: other values of these; every other key defines the cells (:func:`check_run_settings`). ``checkpoint_every``
+#: defines them too: each checkpoint ends a chunk of training, whose episodes restart.
 RUN_ONLY_SETTINGS = (
     "out_dir", "seeds", "settings_to_run", "conditions_to_run", "backend", "num_workers", "ray_address",
-    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "checkpoint_every", "scale",
+    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "scale",
     "allow_changed_settings",
 )  # fmt: skip
 
