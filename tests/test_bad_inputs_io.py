@@ -57,6 +57,15 @@ def _discover(data, k=2, **kw):
 
 
 D = _data()
+
+
+def _save(data):
+    import tempfile
+
+    from torchrl_options.segmentation.io import save_trajectories
+
+    return save_trajectories(data, Path(tempfile.mkdtemp()) / "demos.npz")
+
 TRAJS = [D[0], D[1]]
 
 # ------------------------------------------------------------------------------------------- discovery
@@ -116,6 +125,14 @@ DISCOVERY = [
     ("segment: options not a module", lambda: segment(D, torch.nn.Linear(2, 2)), TypeError, "options must be a TensorDictModuleBase"),
     ("segment: obs features differ", lambda: segment(D, OptionsMLP(4, 3, 2)), ValueError, "cannot read the trajectories"),
     ("segment: missing action", lambda: segment(_without(D, "action"), OptionsMLP(2, 3, 2)), ValueError, "no 'action' entry"),
+    ("segment: threshold 2", lambda: segment(D, OptionsMLP(2, 3, 2), method="posterior", threshold=2.0), ValueError,
+     "threshold must be a probability in [0, 1]"),
+    ("segment: batch_size 0", lambda: segment(D, OptionsMLP(2, 3, 2), batch_size=0), ValueError, "batch_size must be an int >= 1"),
+    ("segment: meta_control of a wrong type", lambda: segment(D, OptionsMLP(2, 3, 2), meta_control=3), TypeError,
+     "meta_control must be None or a TensorDictModuleBase"),
+    ("save_trajectories: [T] data", lambda: _save(D[0]), ValueError, "must be a [B, T] TensorDict"),
+    ("save_trajectories: missing action", lambda: _save(_without(D, "action")), ValueError, "data lacks ['action']"),
+    ("save_trajectories: not a TensorDict", lambda: _save([1]), TypeError, "data must be a [B, T] TensorDict"),
     ("segment: empty trajectory", lambda: segment([D[0][:0]], OptionsMLP(2, 3, 2)), ValueError, "trajectories[0] is empty"),
 ]  # fmt: skip
 
