@@ -44,7 +44,8 @@ def _run(data, args, num_iterations: int, tol: float | None):
     t0, c0 = time.perf_counter(), time.process_time()
     result = discover_options(
         data, num_options=args.options, num_iterations=num_iterations, m_steps=args.m_steps, lr=args.lr,
-        tol=tol, patience=args.patience, init=args.init, seed=args.seed, progress=False, return_info=True,
+        tol=tol, patience=args.patience, init=args.init, restarts=1, num_cells=2, seed=args.seed, progress=False,
+        return_info=True,
     )  # fmt: skip
     return result, time.perf_counter() - t0, time.process_time() - c0
 

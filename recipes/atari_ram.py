@@ -16,7 +16,8 @@ Run:
     python recipes/atari_ram.py preset=cpu-vec-rr                         # cpu-vec at DQN's usual replay ratio, 8 seeds
 
 Writes to ``out_dir``: ``results.csv`` (one row per episode and cell, re-runs skip finished cells),
-``summary.md``, ``curves.png``, ``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.
+``summary.md`` (with aggregates over the games), ``curves.png``, ``aggregates.png``,
+``option_frames/<game>/option<h>.{png,avi}`` (figure 4) and per-seed checkpoints.
 """
 from __future__ import annotations
 
@@ -29,7 +30,9 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options.experiments import (
+    aggregates_markdown,
     check_run_settings,
+    plot_aggregates,
     plot_curves,
     ResultsLog,
     run_sweep,
@@ -40,6 +43,7 @@ from torchrl_options.experiments.recipe_runner import recipe_guard
 from torchrl_options.experiments.validation import check_atari_recipe_settings
 from torchrl_options.experiments.atari import (
     AtariConfig,
+    atari_aggregates,
     atari_cells,
     atari_comparison,
     atari_summary_markdown,
@@ -96,11 +100,17 @@ def sweep_cells(cfg: DictConfig) -> list:
 
 
 def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: AtariConfig) -> None:
-    """``summary.md`` (per game, each pair of conditions that ran, the paper's H1 vs A first; option usage; the
-    generic per-condition table) and ``curves.png``."""
+    """``summary.md`` (aggregates over games; per game, each pair of conditions that ran, the paper's H1 vs A first;
+    option usage; the generic per-condition table), ``curves.png`` and ``aggregates.png``."""
     rows = results.rows()  # read once for every pair
     text = f"# Atari RAM, preset `{cfg.preset_name}`\n\n"
     pairs = atari_summary_pairs({r["condition"] for r in rows})
+    agg = atari_aggregates(rows, phase1_episodes=config.phase1_episodes, pairs=pairs)
+    if agg is not None:
+        text += ("## Aggregates over games (Agarwal et al. 2021)\n\n"
+                 + aggregates_markdown(agg, score_name="each run's mean phase-3 training return")
+                 + "\nPlotted in `aggregates.png`. Per game, below.\n\n")
+        plot_aggregates(agg, os.path.join(out_dir, "aggregates.png"), title="Atari RAM")
     for condition, baseline in pairs:
         comparisons = atari_comparison(rows, phase1_episodes=config.phase1_episodes, final_window=cfg.final_window,
                                        condition=condition, baseline=baseline)

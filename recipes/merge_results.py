@@ -2,7 +2,7 @@
 
 Every GridWorld recipe writes ``<out_dir>/results.csv`` (one row per episode). Runs that cover different seeds
 (``"seeds=[0,1,2]"`` here, ``"seeds=[3,4,5]"`` there) or different conditions can be merged into one file, with
-``summary.md`` (bootstrap intervals over all seeds) and ``curves.png`` beside it. A cell present in two inputs is
+``summary.md`` (Student-t intervals over all seeds, paired comparisons against ``A``) and ``curves.png`` beside it. A cell present in two inputs is
 kept once if identical and refused if not.
 
     python recipes/merge_results.py outputs/explore outputs/explore_b outputs/explore_c --out outputs/explore_all \

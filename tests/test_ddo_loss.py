@@ -249,3 +249,424 @@ class TestBadInput:
     def test_wrong_batch_dims(self):
         with pytest.raises(ValueError, match=r"\[B, T\]"):
             DDOLoss(OptionsMLP(3, 4, 2))(_trajectories().unsqueeze(0))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# TorchRL's LossModule contract, for both DDO losses (in the style of TorchRL's own loss tests)
+
+from tensordict.nn import TensorDictParams  # noqa: E402
+
+from torchrl_options.hierarchy import HierarchicalDDOLoss, OptionHierarchy  # noqa: E402
+from torchrl_options.hierarchy.discover import HierarchicalEStep  # noqa: E402
+from torchrl_options.objectives import DDOLossBase  # noqa: E402
+
+
+def _make_loss(kind, *, meta=False, seed=0, **kwargs):
+    """A small loss of each kind over 3 observation features and 4 primitive actions."""
+    torch.manual_seed(seed)
+    if kind == "flat":
+        return DDOLoss(OptionsMLP(3, 4, 2, num_cells=4), MetaControlMLP(3, 2, num_cells=4) if meta else None, **kwargs)
+    lower = OptionHierarchy(4, [OptionsMLP(3, 4, 2, num_cells=4)])
+    return HierarchicalDDOLoss(
+        OptionsMLP(3, 6, 2, num_cells=4), lower, MetaControlMLP(3, 2, num_cells=4) if meta else None, **kwargs
+    )
+
+
+def _flat_params(module):
+    return torch.cat([p.detach().reshape(-1) for p in module.parameters()])
+
+
+@pytest.mark.parametrize("kind", ["flat", "hierarchical"])
+class TestLossModuleContract:
+    def test_is_a_loss_module_with_keys(self, kind):
+        from torchrl.objectives import LossModule
+
+        loss = _make_loss(kind, meta=True)
+        assert isinstance(loss, LossModule) and isinstance(loss, DDOLossBase)
+        for key in ["observation", ("next", "observation"), "action", ("collector", "mask"), ("next", "terminated")]:
+            assert key in loss.in_keys
+        assert loss.out_keys[:2] == ["loss_ddo", "log_likelihood_per_step"]
+        assert set(loss(_trajectories()).keys()) == set(loss.out_keys)
+        loss.set_keys(action="expert_action", mask="valid", terminal="done")
+        assert {"expert_action", "valid", "done"} <= set(loss.in_keys) and "action" not in loss.in_keys
+        loss.set_keys(action=None)  # back to the default
+        assert loss.tensor_keys.action == "action"
+        with pytest.raises(ValueError, match="not an accepted tensordict key"):
+            loss.set_keys(actions="a")
+
+    def test_same_keyword_arguments(self, kind):
+        import inspect
+
+        def keywords(cls):
+            return {n for n, p in inspect.signature(cls.__init__).parameters.items() if p.kind == p.KEYWORD_ONLY}
+
+        assert keywords(HierarchicalDDOLoss) - {"num_actions"} == keywords(DDOLoss)
+        assert {"backend", "diagnostics", "reduction", "terminal_at_end", "action_space"} <= keywords(DDOLoss)
+        loss = _make_loss(kind, diagnostics=False, backend="auto")
+        out = loss(_trajectories())
+        assert set(out.keys()) == {"loss_ddo", "log_likelihood_per_step"} == set(loss.out_keys)
+        loss.diagnostics = True
+        assert "option_entropy" in loss(_trajectories()).keys()
+
+    def test_networks_are_functional(self, kind):
+        loss = _make_loss(kind, meta=True)
+        assert loss.functional
+        assert isinstance(loss.options_params, TensorDictParams)
+        assert isinstance(loss.meta_control_params, TensorDictParams)
+        # the parameters are the modules' own: an optimizer over loss.parameters() trains loss.options
+        own = {id(p) for p in loss.options.parameters()} | {id(p) for p in loss.meta_control.parameters()}
+        assert {id(p) for p in loss.parameters()} == own
+        data = _trajectories()
+        ref = loss(data)["loss_ddo"].detach()
+        net = loss.get_stateful_net("options")
+        assert net is not loss.options  # a copy
+        for p in net.parameters():
+            p.data.add_(0.5)
+        loss.from_stateful_net("options", net)
+        changed = loss(data)["loss_ddo"].detach()
+        assert not torch.allclose(changed, ref)
+        torch.testing.assert_close(_flat_params(loss.options), _flat_params(net))
+        meta = loss.get_stateful_net("meta_control", copy=True)
+        meta_params = _flat_params(meta)
+        torch.testing.assert_close(meta_params, _flat_params(loss.meta_control))
+
+    def test_reset_parameters(self, kind):
+        loss = _make_loss(kind, meta=True)
+        before = _flat_params(loss.options).clone(), _flat_params(loss.meta_control).clone()
+        lower = _flat_params(loss.lower_levels).clone() if kind == "hierarchical" else None
+        loss.reset_parameters_recursive()
+        assert not torch.allclose(_flat_params(loss.options), before[0])
+        assert not torch.allclose(_flat_params(loss.meta_control), before[1])
+        if lower is not None:  # the fixed lower levels are not the loss's parameters
+            torch.testing.assert_close(_flat_params(loss.lower_levels), lower)
+
+    def test_state_dict_round_trip(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True, seed=0)
+        other = _make_loss(kind, meta=True, seed=1)
+        state = loss.state_dict()
+        assert any(k.startswith("options_params.") for k in state)
+        assert any(k.startswith("meta_control_params.") for k in state)
+        if kind == "hierarchical":
+            assert any(k.startswith("lower_levels.") for k in state)
+        assert not torch.allclose(other(data)["loss_ddo"], loss(data)["loss_ddo"])
+        other.load_state_dict(state)
+        torch.testing.assert_close(other(data)["loss_ddo"], loss(data)["loss_ddo"])
+
+    def test_dtype_cast(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True)
+        ref = loss(data)
+        loss = loss.double()
+        assert all(p.dtype == torch.float64 for p in loss.options_params.values(True, True))
+        if kind == "hierarchical":
+            assert all(p.dtype == torch.float64 for p in loss.lower_levels.parameters())
+        out = loss(data)
+        assert out["loss_ddo"].dtype == torch.float64
+        torch.testing.assert_close(out["loss_ddo"].float(), ref["loss_ddo"], rtol=1e-4, atol=1e-5)
+
+    def test_every_network_is_registered(self, kind):
+        """What module casts (.to(device), .double()) and state_dict() walk: every network, the fixed levels too."""
+        loss = _make_loss(kind, meta=True)
+        modules = list(loss.modules())
+        assert any(m is loss.options_params for m in modules) and any(m is loss.meta_control_params for m in modules)
+        if kind == "hierarchical":
+            assert any(m is loss.lower_levels for m in modules)
+            assert loss.lower_levels.num_levels == 1 and loss.level == 2
+            # ... but they are not trained: parameters() leaves them out
+            lower = {id(p) for p in loss.lower_levels.parameters()}
+            assert lower and not lower & {id(p) for p in loss.parameters()}
+            named = dict(loss.named_parameters())
+            assert named and not any(k.startswith("lower_levels.") for k in named)
+
+    @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+    def test_cuda(self, kind):
+        data = _trajectories()
+        loss = _make_loss(kind, meta=True)
+        ref = loss(data)["loss_ddo"]
+        out = loss.to("cuda")(data.to("cuda"))["loss_ddo"]
+        torch.testing.assert_close(out.cpu(), ref.detach(), rtol=1e-4, atol=1e-5)
+
+    def test_keyword_call(self, kind):
+        data = _trajectories(lengths=[12, 9, 5, 1])
+        loss = _make_loss(kind)
+        ref = loss(data)
+        out = loss(
+            observation=data["observation"],
+            action=data["action"],
+            next_observation=data["next", "observation"],
+            next_terminated=data["next", "terminated"],
+            collector_mask=data["collector", "mask"],
+        )
+        assert isinstance(out, tuple) and len(out) == len(loss.out_keys)
+        for key, value in zip(loss.out_keys, out):
+            torch.testing.assert_close(value, ref[key])
+        loss.select_out_keys("loss_ddo")
+        single = loss(observation=data["observation"], action=data["action"],
+                      next_observation=data["next", "observation"])  # fmt: skip
+        assert single.shape == ()
+
+    def test_loss_mask_key(self, kind):
+        """The issue's reproduction: a 6 + 3 step batch whose padding is marked in ("my", "valid") only."""
+        torch.manual_seed(0)
+        full = _trajectories(B=2, T=6).exclude(("collector", "mask"))
+        full["next", "terminated"][:] = False
+        valid = torch.tensor([[True] * 6, [True] * 3 + [False] * 3])
+        full["my", "valid"] = valid
+        loss = _make_loss(kind)
+        unmasked = loss(full)["loss_ddo"]
+        parts = [loss(full[:1])["loss_ddo"] * 6, loss(full[1:, :3])["loss_ddo"] * 3]
+        expected = sum(parts) / 9
+        loss.loss_mask_key = ("my", "valid")
+        assert ("my", "valid") in loss.in_keys and loss.mask_keys == [("collector", "mask"), ("my", "valid")]
+        # padding with non-finite values and out-of-range actions is ignored, gradients stay finite
+        full["observation"][1, 3:] = float("nan")
+        full["next", "observation"][1, 3:] = float("inf")
+        full["action"][1, 3:] = 99
+        out = loss(full)["loss_ddo"]
+        torch.testing.assert_close(out, expected)
+        assert not torch.allclose(out, unmasked)
+        out.backward()
+        assert all(torch.isfinite(p.grad).all() for p in loss.parameters())
+        # None: only tensor_keys.mask (absent here) -> the NaN padding now counts and is refused
+        loss.loss_mask_key = None
+        assert loss.mask_keys == [("collector", "mask")]
+        with pytest.raises(ValueError, match="NaN"):
+            loss(full)
+        # "auto" reads TorchRL's own masks: ("collector", "mask") and "shifted_valid"
+        loss.loss_mask_key = "auto"
+        full["shifted_valid"] = full.pop(("my", "valid")).unsqueeze(-1)
+        torch.testing.assert_close(loss(full)["loss_ddo"], expected)
+        # several masks: a step is valid where all of them say so
+        full["collector", "mask"] = torch.tensor([[True] * 5 + [False], [True] * 6])
+        both = loss(full)["loss_ddo"]
+        torch.testing.assert_close(both, (loss(full[:1, :5])["loss_ddo"] * 5 + parts[1]) / 8)
+        with pytest.raises(ValueError, match="loss_mask_key"):
+            loss.loss_mask_key = 3
+
+    def test_one_synchronisation_per_check(self, kind, monkeypatch):
+        """log_probabilities checks the batch with one read-back (tolist), no item()/bool() on tensors."""
+        data = _trajectories(lengths=[12, 9, 5, 1])
+        loss = _make_loss(kind, meta=True)
+        calls = []
+        for name in ("tolist", "item", "__bool__"):
+            original = getattr(torch.Tensor, name)
+
+            def counted(self, *args, _name=name, _original=original, **kwargs):
+                calls.append(_name)
+                return _original(self, *args, **kwargs)
+
+            monkeypatch.setattr(torch.Tensor, name, counted)
+        loss.log_probabilities(data)
+        monkeypatch.undo()
+        assert calls == ["tolist"]
+
+
+def test_hierarchical_e_step_checks_and_runs_the_recursion_once(monkeypatch):
+    """On logged iterations too (diagnostics on): one log_probabilities (one check), one recursion, and the record
+    equals the loss's outputs."""
+    import torchrl_options.hierarchy.loss as hloss
+
+    data = _trajectories(lengths=[12, 9, 5, 1])
+    loss = _make_loss("hierarchical", meta=True)
+    expected = loss(data)
+    calls = {"log_probabilities": 0, "recursion": 0}
+    log_probabilities, recursion = loss.log_probabilities, hloss.hierarchical_forward_backward
+
+    def counted_log_probabilities(td):
+        calls["log_probabilities"] += 1
+        return log_probabilities(td)
+
+    def counted_recursion(*args, **kwargs):
+        calls["recursion"] += 1
+        return recursion(*args, **kwargs)
+
+    monkeypatch.setattr(loss, "log_probabilities", counted_log_probabilities)
+    monkeypatch.setattr(hloss, "hierarchical_forward_backward", counted_recursion)
+    record, objective = HierarchicalEStep(loss)(data)
+    assert calls == {"log_probabilities": 1, "recursion": 1}
+    assert set(record) == set(expected.keys())
+    for key, value in record.items():
+        torch.testing.assert_close(value, expected[key].detach(), rtol=1e-5, atol=1e-6)
+    # the objective's gradient is the loss's gradient (the Expectation-Gradient identity)
+    params = list(loss.parameters())
+    g_loss = torch.autograd.grad(expected["loss_ddo"], params)
+    g_objective = torch.autograd.grad(objective(), params)
+    for a, b in zip(g_loss, g_objective):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Bad input at the loss's door (issue 26): one row per case, for both losses where the case applies.
+
+
+def _set(key, value):
+    def mutate(td):
+        td.set(key, value(td) if callable(value) else value)
+        return td
+
+    return mutate
+
+
+def _at(key, index, value):
+    def mutate(td):
+        td.get(key)[index] = value
+        return td
+
+    return mutate
+
+
+def _nan_weights(loss):
+    with torch.no_grad():
+        for p in loss.options.parameters():
+            p.fill_(float("nan"))
+    return loss
+
+
+BAD_INPUTS = [
+    # (id, mutate the [4, 12] batch, error, phrase of the message)
+    ("missing observation", lambda td: td.exclude("observation"), ValueError, r"needs 'observation'"),
+    ("missing next observation", lambda td: td.exclude(("next", "observation")), ValueError,
+     r"needs \('next', 'observation'\)"),
+    ("missing next", lambda td: td.exclude("next"), ValueError, r"under 'next'"),
+    ("missing action", lambda td: td.exclude("action"), ValueError, r"action taken at 'action'"),
+    ("float action", _set("action", lambda td: td["action"].float()), ValueError, r"'action' must hold integer"),
+    ("action of the wrong shape", _set("action", torch.zeros(4, 12, 3, dtype=torch.long)), ValueError,
+     r"'action' must hold integer .*\(4, 12, 3\)"),
+    ("action out of range", _at("action", (2, 3), 7), ValueError, r"'action' holds 7, outside"),
+    ("negative action", _at("action", (0, 0), -1), ValueError, r"'action' holds -1, outside"),
+    ("float mask", _set(("collector", "mask"), lambda td: td["collector", "mask"].float()), ValueError,
+     r"\('collector', 'mask'\) must be a bool tensor of shape \(4, 12\), got torch.float32"),
+    ("mask of the wrong shape", _set(("collector", "mask"), torch.ones(4, 12, 2, dtype=torch.bool)), ValueError,
+     r"\('collector', 'mask'\) must be a bool tensor of shape \(4, 12\).*\(4, 12, 2\)"),
+    ("mask with a gap", _at(("collector", "mask"), (1, 3), False), ValueError, r"non-empty prefix.*row 1"),
+    ("mask with an empty row", _at(("collector", "mask"), (2, slice(None)), False), ValueError,
+     r"non-empty prefix.*row 2"),
+    ("too many observation features", lambda td: td.set("observation", torch.randn(4, 12, 5)).set(
+        ("next", "observation"), torch.randn(4, 12, 5)), ValueError, r"in_features=3.*\(4, 12, 5\)"),
+    ("observation without a feature dimension", lambda td: td.set("observation", torch.randn(4, 12)).set(
+        ("next", "observation"), torch.randn(4, 12)), ValueError, r"in_features=3.*\(4, 12\)"),
+    ("next observation of another shape", _set(("next", "observation"), torch.randn(4, 12, 4)), ValueError,
+     r"\('next', 'observation'\) has shape \(4, 12, 4\) but 'observation' has shape \(4, 12, 3\)"),
+    ("empty batch", lambda td: td[:0], ValueError, r"empty batch"),
+    ("empty trajectories", lambda td: td[:, :0], ValueError, r"empty batch"),
+    ("three batch dimensions", lambda td: td.unsqueeze(0), ValueError, r"\[B, T\] tensordict"),
+    ("NaN observation at a valid step", _at("observation", (1, 2, 0), float("nan")), ValueError,
+     r"'observation' holds NaN or inf at valid step \(b, t\) = \(1, 2\)"),
+    ("inf next observation at a valid step", _at(("next", "observation"), (3, 0, 2), float("inf")), ValueError,
+     r"\('next', 'observation'\) holds NaN or inf at valid step \(b, t\) = \(3, 0\)"),
+    ("terminal of the wrong shape", _set(("next", "terminated"), torch.zeros(4, 12, 2, dtype=torch.bool)),
+     ValueError, r"\('next', 'terminated'\) must be a \[B, T\]"),
+    ("complex observation", lambda td: td.set("observation", td["observation"].to(torch.complex64)), ValueError,
+     r"'observation' must hold real numbers"),
+    ("not a tensordict", lambda td: "trajectories", ValueError, r"\[B, T\] tensordict"),
+    ("observation not a tensor", _set("observation", lambda td: TensorDict({"x": td["observation"]}, [4, 12])),
+     TypeError, r"'observation' \(an input of the networks\) must be a tensor, got TensorDict"),
+    ("action not a tensor", _set("action", lambda td: TensorDict({"a": td["action"]}, [4, 12])), TypeError,
+     r"'action' must be a tensor of .*actions, got TensorDict"),
+]
+
+
+@pytest.mark.parametrize("kind", ["flat", "hierarchical"])
+@pytest.mark.parametrize("case", BAD_INPUTS, ids=[c[0] for c in BAD_INPUTS])
+def test_bad_input_table(case, kind):
+    _, mutate, error, match = case
+    loss = _make_loss(kind, meta=True)
+    data = mutate(_trajectories())
+    with pytest.raises(error, match=match):
+        loss(data)
+
+
+BAD_LOSS_SETUPS = [
+    # (id, kinds, make the loss or call it, error, phrase)
+    ("options not a module", ["flat"], lambda: DDOLoss(torch.nn.Linear(3, 4)), TypeError,
+     r"options must be a TensorDictModuleBase, got Linear"),
+    ("meta_control not a module", ["flat"], lambda: DDOLoss(OptionsMLP(3, 4, 2), "learned"), TypeError,
+     r"meta_control must be a TensorDictModuleBase or None, got str"),
+    ("bad reduction", ["flat", "hierarchical"], lambda kind: _make_loss(kind, reduction="avg"), ValueError,
+     r"reduction must be 'mean', 'sum' or 'none', got 'avg'"),
+    ("bad backend", ["flat", "hierarchical"], lambda kind: _make_loss(kind, backend="cuda"), ValueError,
+     r"backend must be one of .*got 'cuda'"),
+    ("bad action space", ["flat", "hierarchical"], lambda kind: _make_loss(kind, action_space="discrete"),
+     ValueError, r"action_space must be one of .*got 'discrete'"),
+    ("continuous hierarchy", ["hierarchical"], lambda kind: _make_loss(kind, action_space="continuous"),
+     ValueError, r"action_space must be one of \('auto', 'categorical'\), got 'continuous'"),
+    ("non-bool diagnostics", ["flat", "hierarchical"], lambda kind: _make_loss(kind, diagnostics=1), TypeError,
+     r"diagnostics must be a bool, got 1"),
+    ("non-bool terminal_at_end", ["flat", "hierarchical"], lambda kind: _make_loss(kind, terminal_at_end="yes"),
+     TypeError, r"terminal_at_end must be a bool, got 'yes'"),
+    ("lower levels not a hierarchy", ["hierarchical"],
+     lambda kind: HierarchicalDDOLoss(OptionsMLP(3, 6, 2), OptionsMLP(3, 4, 2)), TypeError,
+     r"lower_levels must be an OptionHierarchy or a sequence"),
+    ("options writing NaN", ["flat", "hierarchical"], lambda kind: _nan_weights(_make_loss(kind))(_trajectories()),
+     ValueError, r"holds NaN.*at valid step \(b, t\) = \(0, 0\)"),
+    ("bad loss_mask_key", ["flat", "hierarchical"],
+     lambda kind: setattr(_make_loss(kind), "loss_mask_key", 1.5), ValueError, r"loss_mask_key must be"),
+    ("loss mask of the wrong dtype", ["flat", "hierarchical"],
+     lambda kind: _with_loss_mask(_make_loss(kind), torch.ones(4, 12, dtype=torch.long)), ValueError,
+     r"\('my', 'valid'\) must be a bool tensor of shape \(4, 12\), got torch.int64"),
+    ("loss mask not a prefix", ["flat", "hierarchical"],
+     lambda kind: _with_loss_mask(_make_loss(kind), torch.arange(12).expand(4, 12) % 2 == 0), ValueError,
+     r"\('my', 'valid'\) must mark a non-empty prefix"),
+    ("meta-control input NaN at a valid step", ["flat", "hierarchical"], lambda kind: _meta_reading("extra", kind),
+     ValueError, r"'extra' holds NaN or inf at valid step \(b, t\) = \(0, 1\)"),
+    ("meta-control input missing", ["flat", "hierarchical"], lambda kind: _meta_reading("absent", kind),
+     ValueError, r"needs 'absent'"),
+]
+
+
+def _with_loss_mask(loss, mask):
+    loss.loss_mask_key = ("my", "valid")
+    data = _trajectories()
+    data["my", "valid"] = mask
+    return loss(data)
+
+
+def _meta_reading(key, kind):
+    loss = _make_loss(kind)
+    meta = MetaControlMLP(1, 2, in_keys=[key])
+    loss = type(loss)(loss.options, *( [loss.lower_levels] if kind == "hierarchical" else []), meta)
+    data = _trajectories()
+    data["extra"] = torch.zeros(4, 12, 1)
+    data["extra"][0, 1] = float("nan")
+    return loss(data)
+
+
+@pytest.mark.parametrize("case", BAD_LOSS_SETUPS, ids=[c[0] for c in BAD_LOSS_SETUPS])
+def test_bad_loss_setup_table(case):
+    _, kinds, make, error, match = case
+    for kind in kinds:
+        with pytest.raises(error, match=match):
+            make() if make.__code__.co_argcount == 0 else make(kind)
+
+
+GAUSSIAN_BAD_INPUTS = [
+    ("action of another dimension", _set("action", torch.randn(4, 12, 3)), ValueError,
+     r"'action' must be a float tensor of shape \(4, 12, 2\)"),
+    ("integer action", _set("action", torch.zeros(4, 12, 2, dtype=torch.long)), ValueError,
+     r"'action' must be a float tensor"),
+    ("NaN action at a valid step", _at("action", (1, 1, 0), float("nan")), ValueError,
+     r"'action' holds NaN or inf at a valid step"),
+]
+
+
+@pytest.mark.parametrize("case", GAUSSIAN_BAD_INPUTS, ids=[c[0] for c in GAUSSIAN_BAD_INPUTS])
+def test_gaussian_bad_input_table(case):
+    _, mutate, error, match = case
+    data = _trajectories()
+    data["action"] = torch.randn(4, 12, 2)
+    loss = DDOLoss(GaussianOptionsMLP(3, 2, 2, num_cells=4))
+    with pytest.raises(error, match=match):
+        loss(mutate(data.clone()))
+    # padding may hold anything
+    data["collector", "mask"][1, 6:] = False
+    data["action"][1, 6:] = float("nan")
+    assert torch.isfinite(loss(data)["loss_ddo"])
+
+
+def test_one_hot_action_with_two_ones():
+    data = _trajectories()
+    data["action"] = torch.nn.functional.one_hot(data["action"], 4)
+    data["action"][0, 5, :2] = 1
+    with pytest.raises(ValueError, match="one-hot actions must have exactly one 1 per valid step"):
+        DDOLoss(OptionsMLP(3, 4, 2))(data)

@@ -159,13 +159,13 @@ def _corridor_accuracy(options, data):
 def test_tol_stops_early_and_still_recovers_the_planted_options():
     data = planted_corridor_demonstrations(32, 100, seed=0)
     kw = dict(num_cells=8, lr=0.05, seed=0, progress=False, return_info=True)
-    result = discover_options(data, 2, num_iterations=1000, m_steps=5, tol=1e-3, patience=10, **kw)
+    result = discover_options(data, 2, num_iterations=1000, m_steps=5, tol=1e-3, patience=10, restarts=1, **kw)
     assert result.converged and len(result.history) < 300, len(result.history)
     assert _corridor_accuracy(result.options, data) >= 0.9
     ll = [h["log_likelihood_per_step"] for h in result.history]
     assert converged_at(ll, 1e-3, 10) == len(ll) - 1
     # without tol: every iteration runs and converged is None
-    plain = discover_options(data, 2, num_iterations=7, **kw)
+    plain = discover_options(data, 2, num_iterations=7, tol=None, **kw)
     assert len(plain.history) == 7 and plain.converged is None
 
 
@@ -205,6 +205,28 @@ def test_tabulated_e_step_matches_ddo_loss(meta):
         for p, g in zip(loss.parameters(), expected):
             torch.testing.assert_close(p.grad, g, atol=1e-6, rtol=1e-5)
         loss.zero_grad()
+
+
+def test_tabulated_e_step_reads_the_loss_mask_keys():
+    """TabulatedDDO masks as its loss does: tensor_keys.mask and the loss_mask_key entries (NaN padding ignored)."""
+    data = planted_corridor_demonstrations(4, 30, seed=2).exclude(("collector", "mask"))
+    valid = torch.ones(4, 30, dtype=torch.bool)
+    valid[1, 20:] = False
+    data["my", "valid"] = valid
+    data["observation"][1, 20:] = float("nan")
+    torch.manual_seed(0)
+    loss = DDOLoss(OptionsMLP(2, 2, 2, num_cells=4))
+    loss.loss_mask_key = ("my", "valid")
+    record, _ = TabulatedDDO(loss, data).e_step()
+    expected = loss(data)
+    for key in loss.out_keys:
+        torch.testing.assert_close(record[key], expected[key].detach())
+    torch.testing.assert_close(TabulatedDDO(loss, data).num_steps, torch.tensor(110))
+    with pytest.raises(ValueError, match="reads other entries"):
+        TabulatedDDO(loss, data).for_loss(DDOLoss(loss.options))  # another mask key
+    loss.loss_mask_key = None
+    with pytest.raises(ValueError, match="'observation' holds NaN"):
+        TabulatedDDO(loss, data)
 
 
 def test_unique_rows_is_exact():

@@ -1,10 +1,12 @@
-"""Shared experiment plumbing: resumable results, bootstrap intervals, summaries, plots."""
+"""Shared experiment plumbing: resumable results, summaries with Student-t intervals, paired comparisons, plots."""
 import numpy as np
 import pytest
 
 from torchrl_options.experiments import (
-    bootstrap_ci,
+    compare_to_baseline,
+    comparison_markdown,
     episodes_to_reach,
+    mean_interval,
     merge_results,
     plot_curves,
     ResultsLog,
@@ -72,16 +74,35 @@ def test_merge_results_joins_runs_split_over_seeds(tmp_path):
         merge_results(dest, [])
 
 
-def test_bootstrap_ci_covers_the_mean_and_shrinks_with_data():
-    rng = np.random.default_rng(0)
-    small = bootstrap_ci(rng.normal(1.0, 1.0, 10))
-    large = bootstrap_ci(rng.normal(1.0, 1.0, 1000))
-    assert small[1] < small[0] < small[2]
-    assert large[1] < 1.0 < large[2]
-    assert (large[2] - large[1]) < (small[2] - small[1])
-    assert bootstrap_ci([3.0]) == (3.0, 3.0, 3.0)
-    with pytest.raises(ValueError):
-        bootstrap_ci([])
+def test_summary_intervals_are_t_intervals_over_seeds():
+    finals = {0: 0.2, 1: 0.5, 2: 0.3}
+    rows = [{"setting": "s", "condition": "A", "seed": seed, "episode": i, "return": v}
+            for seed, v in finals.items() for i in range(4)]
+    [a] = summarize(rows, final_window=2, smooth_window=2)
+    assert a.final_return == pytest.approx(mean_interval(list(finals.values())))
+    half = 4.302653 * np.std(list(finals.values()), ddof=1) / np.sqrt(3)  # t(0.975, 2) * s / sqrt(3)
+    assert a.final_return[2] - a.final_return[0] == pytest.approx(half, rel=1e-6)
+
+
+def test_compare_to_baseline_pairs_by_seed(tmp_path):
+    log = ResultsLog(tmp_path / "results.csv")
+    gains = {0: 0.10, 1: 0.12, 2: 0.08, 3: 0.11}
+    for seed, gain in gains.items():
+        base = 0.3 * seed  # seeds differ a lot; the per-seed gain is small and steady
+        log.append_cell("sup", "A", seed, [base] * 4)
+        log.append_cell("sup", "H1u", seed, [base + gain] * 4)
+        log.append_cell("sup", "H1s", seed, [base + (-1) ** seed * 0.2] * 4)
+    log.append_cell("sup", "H1u", 9, [5.0] * 4)  # a seed A did not run: left out of the pairing
+    log.append_cell("other", "H1u", 0, [1.0] * 4)  # a setting without the baseline: no comparison
+    by = {c.condition: c for c in compare_to_baseline(log, final_window=2)}
+    assert set(by) == {"H1u", "H1s"}
+    assert by["H1u"].num_seeds == 4 and by["H1u"].verdict == "ahead"
+    assert by["H1u"].difference == pytest.approx(mean_interval(list(gains.values())))
+    assert by["H1s"].verdict == "no evidence either way" and by["H1s"].difference[0] == pytest.approx(0.0)
+    worse = compare_to_baseline(log, baseline="H1u", final_window=2)
+    assert {c.condition: c.verdict for c in worse} == {"A": "behind", "H1s": "no evidence either way"}
+    table = comparison_markdown(list(by.values()), final_window=2)
+    assert "Student-t" in table and "| sup | H1u - A | +0.103 [" in table and "| ahead | 4 |" in table
 
 
 def test_episodes_to_reach():
@@ -111,9 +132,26 @@ def test_plot_curves_writes_png(tmp_path):
     for seed in range(2):
         log.append_cell("sup", "A", seed, list(np.linspace(0, 1, 30)))
         log.append_cell("sup", "H1u", seed, list(np.linspace(0, 2, 30)))
-    plot_curves(log, tmp_path / "curves.png", smooth_window=5)
+    log.append_cell("sup", "H1s", 0, list(np.linspace(0, 2, 30)))  # one seed: no band
+    from matplotlib.figure import Figure
+
+    saved = []
+    save = Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        saved.append(fig)
+        return save(fig, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Figure, "savefig", keep)
+        plot_curves(log, tmp_path / "curves.png", smooth_window=5)
     data = (tmp_path / "curves.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    [ax] = saved[0].axes
+    assert "95% Student-t interval of the mean over seeds" in ax.get_title()
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["A: mean of 2 seeds", "A: 95% t-interval over 2 seeds", "H1s: mean of 1 seed",
+                      "H1u: mean of 2 seeds", "H1u: 95% t-interval over 2 seeds"]
 
 
 @pytest.mark.parametrize("backend", ["serial", "local"])

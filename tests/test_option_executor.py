@@ -237,25 +237,51 @@ def test_multisync_collector_spawn(monkeypatch):
     _multisync(monkeypatch, "spawn")
 
 
-def test_seeding_reproducible_and_distinct():
-    """Stochastic options: actions and terminations come from the executor's generator, seeded by set_seed."""
-    def rollout(seed):
-        env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(
-            OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
-        )
-        env.set_seed(seed)
-        td = env.reset()
-        records = []
-        for _ in range(30):
-            td["action"] = torch.full((4,), A + 0)  # always ask for option 0; it only starts at decisions
-            td = env.step(td)
-            records.append(td["next", "executed_action"].clone())
-            records.append(td["next", "option_decision"].clone())
-            td = env.step_mdp(td)
-        return torch.stack([r.long() for r in records])
+def _stochastic_records(seed, executor_seed=None, policy_draws=False):
+    """Executed actions and decisions of stochastic options (always asking for option 0)."""
+    executor = OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
+    env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(executor)
+    if executor_seed is not None:
+        executor.set_seed(executor_seed)
+    torch.manual_seed(seed)
+    env.set_seed(seed)
+    td = env.reset()
+    records = []
+    for _ in range(30):
+        td["action"] = torch.full((4,), A + 0)  # always ask for option 0; it only starts at decisions
+        if policy_draws:
+            torch.rand(3)  # other code drawing from torch's default generator
+        td = env.step(td)
+        records.append(td["next", "executed_action"].clone())
+        records.append(td["next", "option_decision"].clone())
+        td = env.step_mdp(td)
+    return torch.stack([r.long() for r in records])
 
-    assert (rollout(1) == rollout(1)).all()
-    assert (rollout(1) != rollout(2)).any()
+
+def test_seeding_reproducible_and_distinct():
+    """Stochastic options draw from torch's default generator (TorchRL's convention), or from a private one."""
+    with torch.random.fork_rng():
+        # torch.manual_seed makes a run reproducible; other seeds give other draws
+        assert (_stochastic_records(1) == _stochastic_records(1)).all()
+        assert (_stochastic_records(1) != _stochastic_records(2)).any()
+        # executor.set_seed: the draws follow its own seed, whatever the global seed or other code's draws
+        private = _stochastic_records(1, executor_seed=7)
+        assert (private == _stochastic_records(2, executor_seed=7, policy_draws=True)).all()
+        assert (private != _stochastic_records(1, executor_seed=8)).any()
+        # the private generator is not shared by a clone appended to another env: it restarts from the seed
+        executor = OptionExecutor(constant_options([[0.0, 0.0], [1.0, -1.0]], [0.0, 0.0]), num_options=K)
+        executor.set_seed(3)
+        env = Corridor(L, max_steps=50, batch_size=[4]).append_transform(executor)
+        state = executor.generator.get_state()
+        env.rollout(5)
+        assert not torch.equal(state, executor.generator.get_state())
+        clone = executor.clone()
+        Corridor(L, max_steps=50, batch_size=[4]).append_transform(clone)
+        assert torch.equal(clone.generator.get_state(), state)
+        with pytest.raises(TypeError, match="seed"):
+            executor.set_seed(1.5)
+        executor.set_seed(None)
+        assert executor.generator is None
 
 
 def test_stochastic_termination_rate():
@@ -377,6 +403,161 @@ def test_action_out_of_range():
         env.step(td)
 
 
+class NaNOptions(torch.nn.Module):
+    """Options whose outputs at cell ``bad_cell`` (and only there) are replaced by ``logits`` / ``term``."""
+
+    def __init__(self, logits, term, bad_cell=2):
+        super().__init__()
+        self.logits, self.term, self.bad_cell = torch.as_tensor(logits), torch.as_tensor(term), bad_cell
+
+    def forward(self, position):
+        batch = position.shape[:-1]
+        at_bad = (position == self.bad_cell).unsqueeze(-1)  # [..., 1, 1]
+        logits = torch.where(at_bad, self.logits, torch.zeros(K, A)).expand(*batch, K, A)
+        term = torch.where(at_bad.squeeze(-1), self.term, torch.full((K,), -BIG)).expand(*batch, K)
+        return logits, term
+
+
+def nan_corridor(logits, term):
+    options = TensorDictModule(NaNOptions(logits, term), ["position"], ["option_logits", "termination_logits"])
+    return Corridor(L, max_steps=50).append_transform(OptionExecutor(options, num_options=K))
+
+
+NAN = float("nan")
+INF = float("inf")
+
+
+@pytest.mark.parametrize(
+    "logits, term, match",
+    [
+        ([[NAN, 0.0], [0.0, 0.0]], [0.0, 0.0], r"NaN in 'option_logits'"),
+        ([[0.0, 0.0], [0.0, 0.0]], [0.0, NAN], r"NaN in 'termination_logits'"),
+        ([[INF, 0.0], [0.0, 0.0]], [0.0, 0.0], r"without a valid softmax"),
+        ([[0.0, 0.0], [-INF, -INF]], [0.0, 0.0], r"without a valid softmax"),
+    ],
+)
+def test_options_writing_nan_raise(logits, term, match):
+    """NaN outputs (or logits without a softmax) do not silently execute the last action: the step landing there
+    raises, naming the entry."""
+    env = nan_corridor(logits, term)
+    td = env.reset()
+    td["action"] = torch.tensor(RIGHT)
+    td = env.step_mdp(env.step(td))  # cell 1: fine
+    td["action"] = torch.tensor(RIGHT)
+    with pytest.raises(ValueError, match=match):
+        env.step(td)  # lands on cell 2
+
+
+def test_infinite_logits_that_are_valid_do_not_raise():
+    """-inf masks an action, +inf / -inf termination logits mean always / never: all valid."""
+    env = Corridor(L, max_steps=50).append_transform(
+        OptionExecutor(constant_options([[-INF, 0.0], [0.0, -INF]], [INF, -INF]), num_options=K)
+    )
+    env.set_seed(0)
+    torch.manual_seed(0)
+    data = env.rollout(40, break_when_any_done=False)
+    ran = data["next", "executed_option"] >= 0
+    assert ran.any()
+    # option 0 only goes right, option 1 only left, wherever they run
+    option, executed = data["next", "executed_option"][ran], data["next", "executed_action"][ran]
+    assert (executed == torch.where(option == 0, RIGHT, LEFT)).all()
+    # option 0 always terminates after its step, option 1 never (until the episode ends)
+    nxt = data["next"]
+    assert (nxt["option"][nxt["executed_option"] == 0] == -1).all()
+    assert ((nxt["option"] == 1) | nxt["done"].squeeze(-1))[nxt["executed_option"] == 1].all()
+
+
+@pytest.mark.parametrize(
+    "make, error, match",
+    [
+        (lambda: OptionExecutor(checkpoint_options(L), num_options=True), ValueError, "num_options"),
+        (lambda: OptionExecutor(checkpoint_options(L), num_options=2.0), ValueError, "num_options"),
+        (lambda: OptionExecutor(checkpoint_options(L), num_options=K, level=0), ValueError, "level"),
+        (lambda: OptionExecutor(checkpoint_options(L), num_options=K, greedy="yes"), TypeError, "greedy"),
+        (lambda: OptionExecutor(CheckpointOptions(L), num_options=K), TypeError, "TensorDict module"),
+        (lambda: OptionExecutor(checkpoint_options(L), num_options=K, option_key="executed_option"), ValueError,
+         "must differ"),
+        # keys checked when the executor is appended
+        (lambda: Corridor(L).append_transform(OptionExecutor(checkpoint_options(L, in_key="pos"), num_options=K)),
+         ValueError, r"reads \['pos'\], which the env does not observe"),
+        (lambda: Corridor(L).append_transform(OptionExecutor(checkpoint_options(L), num_options=K, action_key="act")),
+         ValueError, "action entry 'act'"),
+        (lambda: Corridor(L).append_transform(OptionExecutor(checkpoint_options(L), num_options=K, level=2)),
+         ValueError, "running-option entry 'option'"),
+    ],
+)
+def test_bad_construction(make, error, match):
+    with pytest.raises(error, match=match):
+        make()
+
+
+def test_step_without_reset_state():
+    env = corridor_with_executor()
+    td = env.reset()
+    del td["option_actions"]
+    td["action"] = torch.tensor(0)
+    with pytest.raises(ValueError, match="'option_actions' is missing .* Reset the env first"):
+        env.step(td)
+
+
+def test_public_apis_only():
+    """No TensorDict / torch internals: they change between releases (the reason for narrow version pins)."""
+    import inspect
+
+    import torchrl_options.transforms.option_executor as module
+
+    source = inspect.getsource(module)
+    for private in ("_get_str", "_set_str", "_get_tuple", "_set_tuple", "._version", "._kwargs", "_assert_async",
+                    '__dict__["set_seed"]'):
+        assert private not in source, private
+
+
+def _deferred_bad_input(device):
+    """Bad input with the checks of an accelerator: the step runs, a later step (or the next reset) raises, once."""
+    env = Corridor(L, max_steps=50, batch_size=[3], device=device).append_transform(
+        OptionExecutor(checkpoint_options(L).to(device), num_options=K)
+    )
+    td = env.reset()
+    td["action"] = torch.tensor([0, A + K, 1], device=device)
+    td = env.step_mdp(env.step(td))  # runs (the action clamped into range: option K - 1), flagged on the device
+    assert td["executed_option"].tolist() == [-1, K - 1, -1]
+    with pytest.raises(ValueError, match=r"expected integers in \[0, 4\).*earlier step on"):
+        for _ in range(50):  # raises as soon as the flag reached the host
+            td["action"] = torch.zeros(3, dtype=torch.long, device=device)
+            td = env.step_mdp(env.step(td))
+    env.reset()  # reported once
+    # NaN options: the next reset at the latest raises
+    module = NaNOptions([[NAN, 0.0], [0.0, 0.0]], [0.0, 0.0], bad_cell=0)
+    module.logits, module.term = module.logits.to(device), module.term.to(device)
+    options = TensorDictModule(module, ["position"], ["option_logits", "termination_logits"])
+    env = Corridor(L, max_steps=50, device=device).append_transform(OptionExecutor(options, num_options=K))
+    env.reset()  # flags the NaN written at cell 0
+    with pytest.raises(ValueError, match="NaN .* at an earlier step"):
+        env.reset()
+    # valid input: same invariants as with immediate checks
+    env = Corridor(L, max_steps=12, batch_size=[3], device=device).append_transform(
+        OptionExecutor(checkpoint_options(L, EVERY).to(device), num_options=K)
+    )
+    torch.manual_seed(0)
+    check_invariants(env.rollout(60, break_when_any_done=False))
+
+
+def test_deferred_checks_logic_on_cpu(monkeypatch):
+    """The deferred (CUDA) checks, forced on the CPU: same behaviour, without CUDA events or pinned memory."""
+    from torchrl_options.transforms import option_executor
+
+    monkeypatch.setattr(option_executor, "_defers_checks", lambda device: True)
+    _deferred_bad_input("cpu")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_bad_input_raises_without_a_sync_per_step():
+    """On CUDA the range and NaN checks do not wait for the device: a later step (at the latest the next reset)
+    raises."""
+    _deferred_bad_input("cuda")
+
+
 # ------------------------------------------------------------------------------- options evaluated once
 class CountingOptions(torch.nn.Module):
     """One option whose action depends on the state (right below cell 4, left from it) and that never
@@ -409,30 +590,35 @@ def test_options_run_once_per_step():
     policy = scripted_policy([[LEFT, LEFT, A + 0, LEFT]] * 10)  # no env reaches the end: no reset
     data = env.rollout(10, policy=policy, break_when_any_done=False)
     assert not data["next", "done"].any()
-    assert options.calls == 10 + 1  # + the first step after the reset
+    # + the reset; + 1 the first time: the first call also checks that TensorDictModule's module gives the same
+    # outputs called directly (it is, from then on)
+    assert options.calls == 10 + 1 + 1
     # env 2 runs the option: right up to cell 4, then left (state-dependent actions from the reused outputs)
     assert data["next", "position"][2].squeeze(-1).tolist() == [1, 2, 3, 4, 3, 4, 3, 4, 3, 4]
 
 
-def test_options_recomputed_when_inputs_or_parameters_change():
+def test_option_actions_are_state_in_the_tensordict():
+    """Each option's action at s_t is drawn when s_t is observed and carried in the tensordict, as TorchRL's state."""
     env, options = counting_corridor()
-    env.set_seed(0)
+    check_env_specs(env)
     td = env.reset()
+    assert td["option_actions"].tolist() == [RIGHT]  # the option's action at cell 0
     td["action"] = torch.tensor(A + 0)  # start the option at cell 0: right
     td = env.step_mdp(env.step(td))
-    assert int(td["position"]) == 1 and int(td["option"]) == 0
-    # the observation is written in place (as partial resets and batched-env buffers do): the option must
-    # act at the new value (cell 5: left), not reuse its outputs at cell 1 (right)
-    td["position"].fill_(5)
-    td["action"] = torch.tensor(LEFT)  # ignored: the option runs
+    assert int(td["position"]) == 1 and int(td["option"]) == 0 and td["option_actions"].tolist() == [RIGHT]
+    # the executed action is the one carried in the tensordict
+    td["option_actions"] = torch.tensor([LEFT])
+    td["action"] = torch.tensor(RIGHT)  # ignored: the option runs
     td = env.step_mdp(env.step(td))
     assert int(td["executed_action"]) == LEFT and int(td["position"]) == 0
-    # the options' parameters (here a buffer) change in place (training, load_state_dict): at cell 0 the
-    # option now goes left; reusing the outputs computed before the change would go right
+    # the options' parameters (here a buffer) change in place (training, load_state_dict): the action at the
+    # current state was drawn before; the next states use the new parameters
     options.flip.fill_(1.0)
-    td["action"] = torch.tensor(LEFT)
-    td = env.step(td)
-    assert int(td["next", "executed_action"]) == LEFT and int(td["next", "executed_option"]) == 0
+    for expected in (RIGHT, LEFT):
+        td["action"] = torch.tensor(RIGHT)
+        td = env.step_mdp(env.step(td))
+        assert int(td["executed_action"]) == expected
+    assert int(td["position"]) == 0
 
 
 def test_inference_mode_and_float64_options():

@@ -97,8 +97,9 @@ def test_smoke_end_to_end_and_resume(tmp_path):
     # H1's frames include the greedy demonstrations of phase 2
     assert int(h[p1]["frames"]) > int(h[p1 - 1]["frames"]) + cfg.atari.num_demonstrations
     summary = (tmp_path / "summary.md").read_text()
-    assert "| Seaquest | 1 | 3 |" in summary and "equal frames" in summary and "better" in summary
-    assert (tmp_path / "curves.png").stat().st_size > 0
+    assert "| Seaquest | 1 | 3 |" in summary and "equal frames" in summary and "verdict (equal episodes)" in summary
+    assert "no evidence either way" in summary and "Probability of improvement" in summary
+    assert (tmp_path / "curves.png").stat().st_size > 0 and (tmp_path / "aggregates.png").stat().st_size > 0
     frames_dir = tmp_path / "option_frames" / "Seaquest"
     assert (frames_dir / "labels.json").exists()
     assert any(p.suffix == ".png" for p in frames_dir.iterdir()) and any(p.suffix == ".avi" for p in frames_dir.iterdir())

@@ -236,3 +236,124 @@ def test_dqn_loss_bootstraps_with_gamma_k():
     # without the key every transition is one step long
     del td["steps_to_next_obs"]
     torch.testing.assert_close(loss(td)["loss"][1], torch.tensor((2.0 - (0.5 + gamma * 5.0)) ** 2))
+
+
+# ---------------------------------------------------------------------------------- bad input
+NAN = float("nan")
+
+
+@pytest.mark.parametrize("gamma", [1.5, -0.5, NAN, True, "0.9", None])
+def test_gamma_outside_unit_interval_refused(gamma):
+    data = steps([True, False], [False, False])
+    with pytest.raises(ValueError, match=r"gamma must be a number in \[0, 1\], got"):
+        smdp_transitions(data, gamma)
+    with pytest.raises(ValueError, match="gamma"):
+        SMDPTransitions(gamma)
+    with pytest.raises(ValueError, match="gamma"):
+        SMDPTransform(gamma)
+
+
+@pytest.mark.parametrize("key, name", [(("next", "done"), "done_key"), (("next", "reward"), "reward_key")])
+def test_missing_done_or_reward_named(key, name):
+    data = steps([True, False, True], [False, False, False]).exclude(key)
+    with pytest.raises(ValueError, match=rf"no \({key[0]!r}, {key[1]!r}\) entry \({name}\)"):
+        smdp_transitions(data, 0.9)
+    with pytest.raises(ValueError, match=name):
+        SMDPTransitions(0.9)(data)
+
+
+def test_other_bad_data():
+    with pytest.raises(ValueError, match="at least one step"):
+        smdp_transitions(steps([True], [False])[:0], 0.9)
+    with pytest.raises(ValueError, match="time dimension"):
+        smdp_transitions(steps([True], [False])[0], 0.9)
+    with pytest.raises(TypeError, match="TensorDict"):
+        smdp_transitions({"next": {}}, 0.9)
+    data = steps([True, False], [False, False])
+    data["next", "option_decision"] = torch.ones(2, 3, dtype=torch.bool)
+    with pytest.raises(ValueError, match="one .*option_decision.* per step"):
+        smdp_transitions(data, 0.9)
+
+
+# ------------------------------------------------------------------------- replay-buffer transform
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer  # noqa: E402
+
+from torchrl_options.data import SMDPTransform, intra_option_transitions, option_suffix_transitions  # noqa: E402
+
+
+def _collector_batches(frames_per_batch=30, total_frames=150, length=8):
+    torch.manual_seed(1)
+    env = Corridor(length, max_steps=10, batch_size=[3]).append_transform(OptionExecutor(checkpoint_options(length), 2))
+    collector = Collector(env, None, frames_per_batch=frames_per_batch, total_frames=total_frames)
+    collector.set_seed(0)
+    batches = [batch.clone() for batch in collector]
+    collector.shutdown()
+    return batches
+
+
+@pytest.mark.parametrize("extras", [False, True])
+def test_replay_buffer_transform_equals_function_path(extras):
+    """rb.append_transform(SMDPTransform(...)) stores exactly what the function-based path gives, over a collector run
+    split into batches (options spanning batch boundaries included)."""
+    gamma = 0.9
+    batches = _collector_batches()
+    smdp = SMDPTransitions(gamma)
+    expected = []
+    for batch in batches:
+        parts = [smdp(batch)]
+        if extras:
+            parts += [intra_option_transitions(batch, num_actions=2), option_suffix_transitions(batch, gamma, action_offset=2)]
+            for i, part in enumerate(parts):
+                part["intra_option"] = torch.full(part.shape, i > 0)
+        expected.append(torch.cat(parts))
+    expected = torch.cat(expected)
+    assert (expected["steps_to_next_obs"] > 1).any()  # options ran
+    transform = SMDPTransform(gamma, intra_option_actions=extras, option_suffixes=extras, num_actions=2 if extras else None)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=8)
+    rb.append_transform(transform)
+    for batch in batches:
+        rb.extend(batch)
+    stored = rb[:]
+    assert len(rb) == expected.shape[0] > 0
+    assert transform.num_pending == smdp.num_pending > 0  # decisions still running at the end of the run
+    for key in expected.keys(True, True):
+        torch.testing.assert_close(stored[key], expected[key], msg=str(key))
+    sample = rb.sample()  # sampling returns stored transitions unchanged
+    assert sample.shape == (8,) and "steps_to_next_obs" in sample.keys()
+    transform.reset()
+    assert transform.num_pending == 0
+
+
+def test_replay_buffer_transform_with_dqn_loss_targets():
+    """The stored transitions feed DQNLoss, which bootstraps with gamma ** k."""
+    gamma = 0.9
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=16)
+    rb.append_transform(SMDPTransform(gamma))
+    for batch in _collector_batches():
+        rb.extend(batch)
+    data = rb[:]
+    actor = QValueActor(torch.nn.Linear(8, 4), in_keys=["observation"], spec=Categorical(4))
+    loss = DQNLoss(actor, action_space=Categorical(4), reduction="none")
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
+    with torch.no_grad():
+        target_q = actor(data["next"].clone())["action_value"].max(-1).values
+        value = loss(data.clone())["loss"]
+        q = actor(data.clone())["action_value"].gather(-1, data["action"].unsqueeze(-1)).squeeze(-1)
+    k = data["steps_to_next_obs"].squeeze(-1).float()
+    not_term = (~data["next", "terminated"].squeeze(-1)).float()
+    target = data["next", "reward"].squeeze(-1) + gamma**k * not_term * target_q
+    torch.testing.assert_close(value, (q - target) ** 2)
+
+
+def test_replay_buffer_transform_bad_use():
+    with pytest.raises(ValueError, match="needs num_actions"):
+        SMDPTransform(0.9, intra_option_actions=True)
+    with pytest.raises(ValueError, match="discount_per='step'"):
+        SMDPTransform(0.9, option_suffixes=True, discount_per="decision")
+    with pytest.raises(ValueError, match="num_actions"):
+        SMDPTransform(0.9, num_actions=0)
+    with pytest.raises(TypeError, match="option_suffixes"):
+        SMDPTransform(0.9, option_suffixes=1)
+    env = Corridor(8, max_steps=10).append_transform(SMDPTransform(0.9))
+    with pytest.raises(ValueError, match="replay-buffer transform"):
+        env.rollout(3)

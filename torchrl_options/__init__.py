@@ -10,7 +10,7 @@ modules), ``objectives`` (``DDOLoss``), ``discovery`` (one-call discovery, initi
 (what the recipes share) and ``testing`` (planted structures).
 """
 from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
-from torchrl_options.data import smdp_transitions, SMDPTransitions
+from torchrl_options.data import smdp_transitions, SMDPTransform, SMDPTransitions
 from torchrl_options.discovery import (
     as_trajectory_batch,
     discover_options,
@@ -70,6 +70,7 @@ __all__ = [
     "save_options",
     "segment",
     "Segmentation",
+    "SMDPTransform",
     "SMDPTransitions",
     "smdp_transitions",
     "UniformMetaControl",

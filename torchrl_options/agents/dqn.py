@@ -333,15 +333,16 @@ class OptionsDQN:
         if config.mode != "actions":
             # over an env that already runs options (a lower level of a hierarchy), these options are one level up
             self._executor_level = 1 + _count_executors(env)
-            env = env.append_transform(
-                OptionExecutor(
-                    self.options,
-                    num_options=self.num_options,
-                    primitive_actions=config.mode == "both",
-                    greedy=config.greedy_options,
-                    level=self._executor_level,
-                )
+            executor = OptionExecutor(
+                self.options,
+                num_options=self.num_options,
+                primitive_actions=config.mode == "both",
+                greedy=config.greedy_options,
+                level=self._executor_level,
             )
+            # the options' draws have their own stream: they do not shift the exploration's
+            executor.set_seed(config.seed + 7_919 * self._executor_level)
+            env = env.append_transform(executor)
         if config.max_decisions is not None:
             # counts the decisions of the top executor (the policy's), or every step without an executor
             env = env.append_transform(DecisionCounter(config.max_decisions, level=_count_executors(env) or None))
@@ -469,6 +470,9 @@ class OptionsDQN:
         finally:
             self.config.num_envs = saved
         env.set_seed(self.config.seed + 10_000)
+        for executor in env.transform.modules() if isinstance(env, TransformedEnv) else ():
+            if isinstance(executor, OptionExecutor):
+                executor.set_seed(self.config.seed + 10_000 + 7_919 * executor.level)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
         env.close()

@@ -1,6 +1,6 @@
 """Data utilities: decision-level (SMDP) transitions for Q-learning over options, and the one-step transitions of
 the primitive actions that options took."""
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
-from torchrl_options.data.smdp import SMDPTransitions, smdp_transitions
+from torchrl_options.data.smdp import SMDPTransform, SMDPTransitions, smdp_transitions
 
-__all__ = ["SMDPTransitions", "intra_option_transitions", "option_suffix_transitions", "smdp_transitions"]
+__all__ = ["SMDPTransform", "SMDPTransitions", "intra_option_transitions", "option_suffix_transitions", "smdp_transitions"]

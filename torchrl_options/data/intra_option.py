@@ -65,8 +65,8 @@ def intra_option_transitions(
         the entries of ``data`` and ``steps_key``.
 
     Raises:
-        KeyError: ``data`` lacks ``executed_option_key`` or ``executed_action_key``.
-        ValueError: no time dimension, or an executed action outside ``[0, num_actions)``.
+        ValueError: ``data`` lacks ``executed_option_key`` or ``executed_action_key``, has no time dimension, or an
+            executed action lies outside ``[0, num_actions)``.
 
     Examples:
         >>> import torch
@@ -92,7 +92,7 @@ def intra_option_transitions(
     option_key, reward_key, steps_key = unravel_key(executed_option_key), unravel_key(reward_key), unravel_key(steps_key)
     for key in (option_key, executed_action_key):
         if data.get(key, None) is None:
-            raise KeyError(f"intra_option_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
+            raise ValueError(f"intra_option_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
     flat = data.reshape(-1)
     option = flat.get(option_key).reshape(flat.shape[0], -1)
     if option.shape[-1] != 1:
@@ -153,8 +153,8 @@ def option_suffix_transitions(
         discounted reward sum, and ``steps_key``. Ordered by env, then time.
 
     Raises:
-        KeyError: ``data`` lacks ``executed_option_key`` or ``decision_key``.
-        ValueError: no time dimension, or ``gamma`` outside ``[0, 1]``.
+        ValueError: ``data`` lacks ``executed_option_key``, ``decision_key``, ``reward_key`` or ``done_key``, has no
+            time dimension, or ``gamma`` lies outside ``[0, 1]``.
 
     Examples:
         >>> import torch
@@ -179,14 +179,14 @@ def option_suffix_transitions(
     """
     if data.ndim == 0:
         raise ValueError("option_suffix_transitions expects data with a time dimension (shape [T] or [*B, T]).")
-    if not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must lie in [0, 1], got {gamma}.")
+    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must lie in [0, 1], got {gamma!r}.")
     action_key, option_key = unravel_key(action_key), unravel_key(executed_option_key)
     decision_key = unravel_key(decision_key)
     reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)
-    for key in (option_key, decision_key):
+    for key in (option_key, decision_key, reward_key, done_key):
         if data.get(key, None) is None:
-            raise KeyError(f"option_suffix_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
+            raise ValueError(f"option_suffix_transitions: data has no {key!r} entry (collect through an OptionExecutor).")
     T = data.shape[-1]
     rows = data.reshape(-1, T)
     N = rows.shape[0]

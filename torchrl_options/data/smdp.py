@@ -27,10 +27,13 @@ import logging
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
+from torchrl.envs import Transform
+
+from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["smdp_transitions", "SMDPTransitions"]
+__all__ = ["smdp_transitions", "SMDPTransitions", "SMDPTransform"]
 
 
 def smdp_transitions(
@@ -95,7 +98,7 @@ def smdp_transitions(
         tensor([3., 4.])
     """
     keys = _Keys(decision_key, reward_key, done_key, steps_key)
-    out, _ = _decisions(data, gamma, None, keys, _per_decision(discount_per))
+    out, _ = _decisions(data, _check_gamma(gamma), None, keys, _per_decision(discount_per))
     return out
 
 
@@ -132,7 +135,7 @@ class SMDPTransitions:
         steps_key: NestedKey = "steps_to_next_obs",
         discount_per: str = "step",
     ):
-        self.gamma = gamma
+        self.gamma = _check_gamma(gamma)
         self.per_decision = _per_decision(discount_per)
         self.keys = _Keys(decision_key, reward_key, done_key, steps_key)
         self._carry: _Carry | None = None
@@ -158,6 +161,12 @@ class SMDPTransitions:
     def num_pending(self) -> int:
         """Number of envs whose current decision is still running."""
         return 0 if self._carry is None else int(self._carry.valid.sum())
+
+
+def _check_gamma(gamma: float) -> float:
+    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+    return float(gamma)
 
 
 def _per_decision(discount_per: str) -> bool:
@@ -186,8 +195,18 @@ class _Carry:
 def _decisions(
     data: TensorDictBase, gamma: float, carry: _Carry | None, keys: _Keys, per_decision: bool = False
 ) -> tuple[TensorDictBase, _Carry]:
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"smdp_transitions expects a TensorDict of step-level data, got {type(data).__name__}.")
     if data.ndim == 0:
         raise ValueError("smdp_transitions expects data with a time dimension (shape [T] or [*B, T]).")
+    if data.shape[-1] == 0:
+        raise ValueError(f"smdp_transitions expects at least one step, got data of shape {tuple(data.shape)}.")
+    for key, name in ((keys.done, "done_key"), (keys.reward, "reward_key")):
+        if data.get(key, None) is None:
+            raise ValueError(
+                f"smdp_transitions: data has no {key!r} entry ({name}); it needs the done flags and rewards of every "
+                "step, as a collector yields them."
+            )
     T = data.shape[-1]
     data = data.reshape(-1, T)
     N = data.shape[0]
@@ -214,6 +233,8 @@ def _decisions(
         valid = torch.cat([carry.valid.unsqueeze(1), valid], 1)
         T = T + 1
     reward = data.get(keys.reward)  # [N, T, *r]
+    if not reward.is_floating_point():
+        reward = reward.float()
     time = torch.arange(T, device=device).expand(N, T)
 
     # a segment starts at a decision, after an episode end, or at the first (valid) step of the batch
@@ -272,3 +293,190 @@ def _assemble(
         k = length[ends]
         out.set(keys.steps, k.view(k.shape[0], *([1] * (reward.ndim - 1))) if reward.ndim > 1 else k)
     return out
+
+
+class SMDPTransform(Transform):
+    r"""Decision-level (SMDP) transitions as a replay-buffer transform.
+
+    Appended to a replay buffer (``rb.append_transform(SMDPTransform(gamma))``), it turns each batch of step-level data
+    given to ``rb.extend`` (a collector batch, over an env with an
+    :class:`~torchrl_options.transforms.OptionExecutor`) into one transition per decision, as
+    :func:`smdp_transitions`, and carries the decisions still running at the end of a batch over to the next one, as
+    :class:`SMDPTransitions` (the same core). It has the shape of TorchRL's
+    :class:`~torchrl.envs.transforms.MultiStepTransform`: an inverse transform, applied when data are written; sampling
+    returns the stored transitions unchanged. ``DQNLoss`` reads their ``steps_to_next_obs`` and bootstraps with
+    ``gamma ** k``.
+
+    With ``intra_option_actions`` and/or ``option_suffixes`` it also writes the one-step transitions of the primitive
+    actions that options took (:func:`~torchrl_options.data.intra_option_transitions`) and the rest of every option run
+    from each of its steps (:func:`~torchrl_options.data.option_suffix_transitions`), after the decisions of the batch,
+    with a ``marker_key`` entry (``True`` on them, ``False`` on the decisions).
+
+    Call ``rb.extend`` with the batches of one collector, in order; :meth:`reset` forgets the carried decisions (e.g.
+    after the collector was reset). A batch in which no transition completes writes nothing. Use one transform per
+    collector (its state is the running decision of each env).
+
+    Args:
+        gamma (float): the discount factor, in ``[0, 1]``.
+
+    Keyword Args:
+        discount_per (str): ``"step"`` (default) or ``"decision"``, as in :func:`smdp_transitions`.
+        intra_option_actions (bool): also write the intra-option transitions of primitive actions; needs
+            ``num_actions`` (an executor with ``level=1``, ``primitive_actions=True``). Defaults to ``False``.
+        option_suffixes (bool): also write the option-suffix transitions (``discount_per="step"`` only). Defaults
+            to ``False``.
+        num_actions (int, optional): the number of primitive actions ``A`` of the executor (``None`` for an executor
+            with ``primitive_actions=False``, whose options are actions ``0 .. K-1``).
+        marker_key (NestedKey): marks the intra-option and suffix transitions. Defaults to ``"intra_option"``.
+        decision_key, reward_key, done_key, steps_key (NestedKey): as in :func:`smdp_transitions`.
+        action_key, executed_action_key, executed_option_key (NestedKey): as in
+            :func:`~torchrl_options.data.intra_option_transitions`.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl_options.data import SMDPTransform
+        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+        >>> rb.append_transform(SMDPTransform(gamma=0.5))  # doctest: +ELLIPSIS
+        TensorDictReplayBuffer(...)
+        >>> data = TensorDict({  # one env, 5 steps: a primitive action, then option 1 (action 3) for 4 steps
+        ...     "observation": torch.arange(5.0),
+        ...     "action": torch.tensor([0, 3, 0, 0, 1]),
+        ...     "next": {
+        ...         "observation": torch.arange(1.0, 6.0),
+        ...         "reward": torch.ones(5, 1),
+        ...         "done": torch.zeros(5, 1, dtype=torch.bool),
+        ...         "option_decision": torch.tensor([True, True, False, False, False]),
+        ...     },
+        ... }, [5])
+        >>> _ = rb.extend(data[:3])  # the primitive decision; the option is still running
+        >>> len(rb)
+        1
+        >>> _ = rb.extend(data[3:])  # the option has not ended yet either
+        >>> _ = rb.extend(TensorDict({  # the next decision at s_5 ends it
+        ...     "observation": torch.tensor([5.0]), "action": torch.tensor([0]),
+        ...     "next": {"observation": torch.tensor([6.0]), "reward": torch.ones(1, 1),
+        ...              "done": torch.zeros(1, 1, dtype=torch.bool), "option_decision": torch.tensor([True])},
+        ... }, [1]))
+        >>> stored = rb[:]
+        >>> stored["action"], stored["steps_to_next_obs"].squeeze(-1), stored["next", "reward"].squeeze(-1)
+        (tensor([0, 3]), tensor([1, 4]), tensor([1.0000, 1.8750]))
+    """
+
+    ENV_ERR = "SMDPTransform is a replay-buffer transform (rb.append_transform); it cannot be used in an env."
+
+    def __init__(
+        self,
+        gamma: float,
+        *,
+        discount_per: str = "step",
+        intra_option_actions: bool = False,
+        option_suffixes: bool = False,
+        num_actions: int | None = None,
+        marker_key: NestedKey = "intra_option",
+        decision_key: NestedKey = ("next", "option_decision"),
+        reward_key: NestedKey = ("next", "reward"),
+        done_key: NestedKey = ("next", "done"),
+        steps_key: NestedKey = "steps_to_next_obs",
+        action_key: NestedKey = "action",
+        executed_action_key: NestedKey = ("next", "executed_action"),
+        executed_option_key: NestedKey = ("next", "executed_option"),
+    ):
+        super().__init__()
+        for name, value in (("intra_option_actions", intra_option_actions), ("option_suffixes", option_suffixes)):
+            if not isinstance(value, bool):
+                raise TypeError(f"SMDPTransform: {name} must be a bool, got {value!r}.")
+        if num_actions is not None and (isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1):
+            raise ValueError(f"SMDPTransform: num_actions must be a positive int or None, got {num_actions!r}.")
+        if intra_option_actions and num_actions is None:
+            raise ValueError(
+                "SMDPTransform: intra_option_actions=True needs num_actions (the executor's primitive actions A)."
+            )
+        if option_suffixes and discount_per != "step":
+            raise ValueError("SMDPTransform: option_suffixes=True discounts per primitive step: it needs discount_per='step'.")
+        self.smdp = SMDPTransitions(
+            gamma,
+            decision_key=decision_key,
+            reward_key=reward_key,
+            done_key=done_key,
+            steps_key=steps_key,
+            discount_per=discount_per,
+        )
+        self.intra_option_actions = intra_option_actions
+        self.option_suffixes = option_suffixes
+        self.num_actions = num_actions
+        self.marker_key = unravel_key(marker_key)
+        self.action_key = unravel_key(action_key)
+        self.executed_action_key = unravel_key(executed_action_key)
+        self.executed_option_key = unravel_key(executed_option_key)
+
+    @property
+    def gamma(self) -> float:
+        """The discount factor."""
+        return self.smdp.gamma
+
+    @property
+    def num_pending(self) -> int:
+        """Number of envs whose current decision is still running (carried over to the next batch)."""
+        return self.smdp.num_pending
+
+    def reset(self) -> None:
+        """Forgets the decisions carried over from the previous batch."""
+        self.smdp.reset()
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase | None:
+        if self.parent is not None:
+            raise ValueError(self.ENV_ERR)
+        out = self.smdp(tensordict)
+        if self.intra_option_actions or self.option_suffixes:
+            keys = self.smdp.keys
+            parts = [out]
+            if self.intra_option_actions:
+                parts.append(
+                    intra_option_transitions(
+                        tensordict,
+                        num_actions=self.num_actions,
+                        action_key=self.action_key,
+                        executed_action_key=self.executed_action_key,
+                        executed_option_key=self.executed_option_key,
+                        reward_key=keys.reward,
+                        steps_key=keys.steps,
+                    )
+                )
+            if self.option_suffixes:
+                parts.append(
+                    option_suffix_transitions(
+                        tensordict,
+                        self.gamma,
+                        action_offset=self.num_actions or 0,
+                        action_key=self.action_key,
+                        executed_option_key=self.executed_option_key,
+                        decision_key=keys.decision,
+                        reward_key=keys.reward,
+                        done_key=keys.done,
+                        steps_key=keys.steps,
+                    )
+                )
+            for i, part in enumerate(parts):
+                part.set(self.marker_key, torch.full(part.shape, i > 0, dtype=torch.bool, device=part.device))
+            out = torch.cat(parts, 0)
+        # an empty write is skipped, as TorchRL's MultiStepTransform does (an empty extend fails on a new storage)
+        return out if out.shape[0] else None
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Sampling: the stored transitions, unchanged."""
+        return tensordict
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        raise ValueError(self.ENV_ERR)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        raise ValueError(self.ENV_ERR)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(gamma={self.gamma}, discount_per={'decision' if self.smdp.per_decision else 'step'!r}, "
+            f"intra_option_actions={self.intra_option_actions}, option_suffixes={self.option_suffixes}, "
+            f"num_actions={self.num_actions})"
+        )

@@ -3,10 +3,12 @@ from torchrl_options.discovery.discover import (
     as_trajectory_batch,
     converged_at,
     discover_options,
+    DEFAULT_RESTARTS,
     DiscoveryResult,
     fit_ddo,
     PAPER_SETTINGS,
 )
+from torchrl_options.discovery.diagnostics import option_diagnostics, OptionDiagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import kmeans, pretrain_on_clusters
 from torchrl_options.discovery.serialization import load_options, save_options
 from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
@@ -14,13 +16,17 @@ from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
 __all__ = [
     "as_trajectory_batch",
     "converged_at",
+    "DEFAULT_RESTARTS",
     "discover_options",
     "DiscoveryResult",
     "fit_ddo",
     "kmeans",
     "load_options",
+    "option_diagnostics",
+    "OptionDiagnostics",
     "PAPER_SETTINGS",
     "pretrain_on_clusters",
+    "restart_disagreement",
     "save_options",
     "TabulatedDDO",
     "unique_rows",

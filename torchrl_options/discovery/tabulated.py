@@ -29,7 +29,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
 from torchrl_options.inference import forward_backward
-from torchrl_options.objectives.ddo import option_log_probs, prepare_trajectories, terminal_flags
+from torchrl_options.objectives.common import BatchChecks, ddo_diagnostics, prepare_trajectories, terminal_flags
+from torchrl_options.objectives.ddo import option_log_probs
 
 __all__ = ["TabulatedDDO", "expected_counts", "tabulate_states", "unique_rows"]
 
@@ -180,15 +181,22 @@ class TabulatedDDO:
         self.action_space = loss_module.action_space
         self.keys = keys
         option_keys = list(self.options.in_keys)
-        batch, mask, current, following = prepare_trajectories(batch, option_keys, keys.mask)
+        meta_keys = [] if self.meta_control is None else list(self.meta_control.in_keys)
+        # the loss's masks: tensor_keys.mask and its loss_mask_key entries
+        batch, mask, current, following = prepare_trajectories(
+            batch, option_keys, loss_module.mask_keys, owner=type(loss_module).__name__, current_keys=meta_keys
+        )
         B, T = mask.shape
+        self._actions_checked = False
         self.mask = mask
         self.terminal = terminal_flags(batch, keys.terminal, mask, loss_module.terminal_at_end)
-        self.table, self.state_index, self.next_index = tabulate_states(option_keys, mask, current, following)
+        self.table, self.state_index, self.next_index = tabulate_states(
+            option_keys, mask, current.select(*option_keys), following
+        )
 
         action = batch.get(keys.action, None)
         if action is None:
-            raise KeyError(f"DDOLoss needs the action taken at {keys.action!r}.")
+            raise ValueError(f"DDOLoss needs the action taken at {keys.action!r}, missing from the trajectories.")
         valid = mask.reshape(-1)
         action = action.reshape(B * T, *action.shape[2:])[valid]
         states = self.state_index.reshape(-1)[valid]
@@ -199,8 +207,7 @@ class TabulatedDDO:
 
         self.meta_table = self.meta_index = None
         if self.meta_control is not None:
-            meta_keys = list(self.meta_control.in_keys)
-            self.meta_table, self.meta_index, _ = tabulate_states(meta_keys, mask, batch.select(*meta_keys))
+            self.meta_table, self.meta_index, _ = tabulate_states(meta_keys, mask, current.select(*meta_keys))
 
     def for_loss(self, loss_module: TensorDictModuleBase) -> TabulatedDDO:
         """This tabulation for another loss module with the same keys, input keys and meta-control presence (a
@@ -210,6 +217,7 @@ class TabulatedDDO:
             and (loss_module.meta_control is None) == (self.meta_control is None)
             and (self.meta_control is None or list(loss_module.meta_control.in_keys) == list(self.meta_control.in_keys))
             and loss_module.tensor_keys == self.keys
+            and loss_module.mask_keys == self.loss_module.mask_keys
             and loss_module.terminal_at_end == self.loss_module.terminal_at_end
         )
         if not same:
@@ -218,6 +226,7 @@ class TabulatedDDO:
         new.__dict__.update(self.__dict__)
         new.loss_module, new.options, new.meta_control = loss_module, loss_module.options, loss_module.meta_control
         new.action_space = loss_module.action_space
+        new._actions_checked = False
         return new
 
     def subset(self, rows: torch.Tensor) -> TabulatedDDO:
@@ -281,7 +290,10 @@ class TabulatedDDO:
             option_loc_key=keys.option_loc,
             option_scale_key=keys.option_scale,
             action_key=keys.action,
+            # the actions are checked once per batch: later calls record the checks and drop them
+            checks=BatchChecks() if self._actions_checked else None,
         )
+        self._actions_checked = True
         K = log_pi.shape[-1]
         term_logits = out.get(keys.termination_logits)
         if term_logits.shape != (self.num_states, K):
@@ -326,16 +338,8 @@ class TabulatedDDO:
             g_pi, g_term, g_cont, g_eta = torch.autograd.grad(fb.log_likelihood.sum(), [log_pi, log_term, log_cont, log_eta])
         n = self.num_steps
         ll = fb.log_likelihood.detach().sum()
-        usage = fb.u.sum((0, 1)) / n
-        entropy = -(usage * usage.clamp_min(torch.finfo(usage.dtype).tiny).log()).sum()
         psi_next = torch.sigmoid(term_logits)[self.next_index]
-        record = {
-            "loss_ddo": -ll / n,
-            "log_likelihood_per_step": ll / n,
-            "option_duration": n / fb.v.sum(),
-            "option_entropy": entropy,
-            "termination_probability": (fb.u * psi_next).sum() / n,
-        }
+        record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **ddo_diagnostics(fb.u, fb.v, psi_next, n)}
 
         mask = self.mask
         n_pi = expected_counts(self.pair_index, g_pi, mask, self.num_pairs)

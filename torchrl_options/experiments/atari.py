@@ -50,7 +50,8 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
 from torchrl_options.checkpoints import load_file, save_file
-from torchrl_options.experiments.results import ResultsLog, bootstrap_ci, smooth
+from torchrl_options.experiments.intervals import interval_verdict, mean_interval, paired_difference_interval
+from torchrl_options.experiments.results import ResultsLog, smooth
 from torchrl_options.experiments.sweep import Cell, CellResult
 
 __all__ = [
@@ -64,6 +65,8 @@ __all__ = [
     "option_usage_markdown",
     "greedy_evaluation_markdown",
     "atari_summary_pairs",
+    "atari_scores",
+    "atari_aggregates",
 ]
 
 logger = logging.getLogger(__name__)
@@ -492,6 +495,8 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         batch_size=config.ddo_batch_size,
         lr=config.ddo_lr,
         m_steps=config.ddo_m_steps,
+        restarts=1,  # the paper's protocol: one start, every iteration run
+        tol=None,
         device=config.device,
         seed=seed,
         progress=False,
@@ -751,19 +756,24 @@ def _cell_infos(out_dir: str, pattern: str = "*") -> list[tuple[str, int, str, d
     return infos
 
 
-def _verdict(diff: tuple[float, float, float], condition: str = "options", baseline: str = "baseline") -> str:
-    m, lo, hi = diff
-    if lo > 0:
-        return condition
-    if hi < 0:
-        return baseline
-    return f"{condition} (n.s.)" if m > 0 else (f"{baseline} (n.s.)" if m < 0 else "tie")
+def _verdict_counts(diffs: Sequence[tuple[float, float, float]]) -> str:
+    """``"ahead in a, behind in b, no evidence either way in c"`` for the paired differences ``diffs``."""
+    verdicts = [interval_verdict(d) for d in diffs]
+    return ", ".join(f"{v} in {verdicts.count(v)}" for v in ("ahead", "behind", "no evidence either way"))
+
+
+def _seed_counts(counts: Sequence[int]) -> str:
+    """``"3 seeds"`` or ``"2-8 seeds"``."""
+    lo, hi = min(counts), max(counts)
+    return f"{lo} seed{'s' if hi > 1 else ''}" if lo == hi else f"{lo}-{hi} seeds"
 
 
 def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, final_window: int = 100,
                      confidence: float = 0.95, condition: str = "H1", baseline: str = "A") -> list[AtariComparison]:
-    """Per game, ``condition`` against ``baseline`` at equal episodes and at equal frames (bootstrap intervals over
-    seeds). The default is the paper's pair: options (``H1``) against actions only, continued (``A``).
+    """Per game, ``condition`` against ``baseline`` at equal episodes and at equal frames: means over seeds with
+    Student-t intervals (:func:`~torchrl_options.experiments.intervals.mean_interval`), and the differences paired by
+    seed (:func:`~torchrl_options.experiments.intervals.paired_difference_interval`). The default is the paper's
+    pair: options (``H1``) against actions only, continued (``A``).
 
     Examples:
         >>> rows = []
@@ -814,9 +824,9 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
             continue
 
         def ci(x):
-            return bootstrap_ci(x, confidence=confidence)
+            return mean_interval(x, confidence=confidence)
 
-        d = lambda k1, k2: ci(np.array(per[k1]) - np.array(per[k2]))  # noqa: E731
+        d = lambda k1, k2: paired_difference_interval(per[k1], per[k2], confidence)  # noqa: E731
         out.append(
             AtariComparison(
                 game=game,
@@ -843,7 +853,9 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
                            header: str | None = None) -> str:
     """The per-game table of :func:`atari_comparison` in Markdown, with a verdict per comparison and a count.
 
-    ``comparisons`` should share one ``(condition, baseline)`` pair (one call per pair); the table names them.
+    ``comparisons`` should share one ``(condition, baseline)`` pair (one call per pair); the table names them. A
+    verdict is "ahead" / "behind" when the 95% Student-t interval of the paired per-seed difference lies above /
+    below 0, "no evidence either way" when it contains 0; the count line says how many seeds the verdicts rest on.
     """
 
     f = _ci_text
@@ -851,13 +863,14 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
     b_name = comparisons[0].baseline if comparisons else "A"
     lines = [header + "\n"] if header else []
     lines += [
-        "Returns of phase 3 (after the shared phase 1), mean over seeds with 95% bootstrap intervals. "
-        f"`{c_name}`: {_describe(c_name)}; `{b_name}`: {_describe(b_name)}. Verdict: whose interval of "
-        f"the paired difference {c_name} - {b_name} lies above (or below) 0; *n.s.* when it contains 0.\n",
+        "Returns of phase 3 (after the shared phase 1), mean over seeds with 95% Student-t intervals over seeds. "
+        f"`{c_name}`: {_describe(c_name)}; `{b_name}`: {_describe(b_name)}. Verdict of `{c_name}` against "
+        f"`{b_name}`: \"ahead\" / \"behind\" when the 95% Student-t interval of the per-seed paired difference "
+        f"{c_name} - {b_name} lies above / below 0, \"no evidence either way\" when it contains 0.\n",
         f"| game | seeds | phase-3 episodes | {b_name}, mean over episodes | {c_name}, mean over episodes | "
-        f"{c_name} - {b_name} | better (equal episodes) | {b_name}, last {final_window} | {c_name}, last "
+        f"{c_name} - {b_name} | verdict (equal episodes) | {b_name}, last {final_window} | {c_name}, last "
         f"{final_window} | {c_name} - {b_name} | equal frames (phase 3) | {b_name} at equal frames | {c_name} at "
-        f"equal frames | {c_name} - {b_name} | better (equal frames) |",
+        f"equal frames | {c_name} - {b_name} | verdict (equal frames) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     ahead = 0
@@ -865,14 +878,20 @@ def atari_summary_markdown(comparisons: Sequence[AtariComparison], *, final_wind
         ahead += c.diff_episodes[0] > 0
         lines.append(
             f"| {c.game} | {c.num_seeds} | {c.phase3_episodes} | {f(c.baseline_episodes)} | {f(c.options_episodes)} | "
-            f"{f(c.diff_episodes)} | {_verdict(c.diff_episodes, c_name, b_name)} | {f(c.baseline_final)} | "
+            f"{f(c.diff_episodes)} | {interval_verdict(c.diff_episodes)} | {f(c.baseline_final)} | "
             f"{f(c.options_final)} | {f(c.diff_final)} | {c.equal_frames:.0f} | {f(c.baseline_frames)} | "
-            f"{f(c.options_frames)} | {f(c.diff_frames)} | {_verdict(c.diff_frames, c_name, b_name)} |"
+            f"{f(c.options_frames)} | {f(c.diff_frames)} | {interval_verdict(c.diff_frames)} |"
         )
     lines.append("")
-    lines.append(
-        f"`{c_name}` ahead of `{b_name}` at equal episodes (mean over phase 3) in {ahead} of {len(comparisons)} games."
-    )
+    if comparisons:
+        seeds = _seed_counts([c.num_seeds for c in comparisons])
+        lines.append(
+            f"`{c_name}` against `{b_name}` over {len(comparisons)} games, on {seeds} per game (Student-t intervals of "
+            f"the paired per-seed differences): at equal episodes "
+            f"{_verdict_counts([c.diff_episodes for c in comparisons])}; "
+            f"at equal frames {_verdict_counts([c.diff_frames for c in comparisons])}. Mean difference above 0 at "
+            f"equal episodes in {ahead} of {len(comparisons)} games."
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -899,11 +918,86 @@ def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
     return [(c, b) for c, b in pairs if c in have and b in have]
 
 
+def atari_scores(
+    log: ResultsLog | Sequence[dict], *, phase1_episodes: int, conditions: Sequence[str] | None = None
+) -> tuple[list[str], dict[str, np.ndarray]]:
+    """Per condition, a score matrix ``[num_seeds, num_games]`` for :mod:`~torchrl_options.experiments.aggregates`:
+    each run's mean training return over its phase-3 episodes (after ``phase1_episodes``).
+
+    The games are those every condition ran (conditions that did not run at all are left out); a condition's seeds,
+    those it finished in every one of these games. A condition with no such seed is left out.
+
+    Returns:
+        ``(games, {condition: scores})``.
+
+    Examples:
+        >>> rows = [dict(setting=g, condition=c, seed=s, episode=e, **{"return": float(e >= 2) * (s + (c == "H1"))})
+        ...         for g in ("Pong", "Seaquest") for c in ("A", "H1") for s in range(3) for e in range(4)]
+        >>> games, scores = atari_scores(rows, phase1_episodes=2)
+        >>> games, scores["H1"].shape, scores["H1"][:, 0].tolist()
+        (['Pong', 'Seaquest'], (3, 2), [1.0, 2.0, 3.0])
+    """
+    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
+    returns: dict[tuple[str, str, int], list[tuple[int, float]]] = defaultdict(list)
+    for r in rows:
+        returns[(r["setting"], r["condition"], r["seed"])].append((r["episode"], r["return"]))
+    score = {}
+    for key, eps in returns.items():
+        phase3 = [ret for _, ret in sorted(eps)][phase1_episodes:]
+        if phase3:
+            score[key] = float(np.mean(phase3))
+    ran = list(dict.fromkeys(c for _, c, _ in score))
+    names = ran if conditions is None else [c for c in conditions if c in ran]
+    games = sorted(set.intersection(*({g for g, c, _ in score if c == name} for name in names)) if names else set())
+    out = {}
+    for name in names:
+        seeds = sorted(set.intersection(*({s for g2, c, s in score if g2 == g and c == name} for g in games))
+                       if games else set())
+        if seeds:
+            out[name] = np.array([[score[(g, name, s)] for g in games] for s in seeds])
+        else:
+            logger.warning("aggregates: condition %r has no seed finished in every game of %s; left out", name, games)
+    return games, out
+
+
+def atari_aggregates(
+    log: ResultsLog | Sequence[dict],
+    *,
+    phase1_episodes: int,
+    pairs: Sequence[tuple[str, str]],
+    confidence: float = 0.95,
+    num_resamples: int = 2000,
+    seed: int = 0,
+):
+    """The aggregates over games of Agarwal et al. (2021) for the conditions of ``pairs``: interquartile mean,
+    probability of improvement per ``(condition, baseline)`` pair and performance profiles, with stratified
+    bootstrap intervals (:func:`~torchrl_options.experiments.aggregates.aggregate_scores`), of each run's mean
+    phase-3 training return (:func:`atari_scores`), min-max normalised per game. ``None`` when no game has them.
+
+    Examples:
+        >>> rows = [dict(setting=g, condition=c, seed=s, episode=e, **{"return": float(e >= 2) * (s + 3 * (c == "H1"))})
+        ...         for g in ("Pong", "Seaquest") for c in ("A", "H1") for s in range(3) for e in range(4)]
+        >>> agg = atari_aggregates(rows, phase1_episodes=2, pairs=[("H1", "A")], num_resamples=200)
+        >>> agg.tasks, agg.verdict(("H1", "A")), agg.improvement[("H1", "A")][0]
+        (['Pong', 'Seaquest'], 'ahead', 1.0)
+    """
+    from torchrl_options.experiments.aggregates import aggregate_scores
+
+    names = list(dict.fromkeys(c for pair in pairs for c in pair))
+    games, scores = atari_scores(log, phase1_episodes=phase1_episodes, conditions=names)
+    pairs = [(c, b) for c, b in pairs if c in scores and b in scores]
+    if not games or not pairs:
+        return None
+    return aggregate_scores(scores, pairs, tasks=games, confidence=confidence, num_resamples=num_resamples,
+                            seed=seed)
+
+
 def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *, phase1_episodes: int) -> str:
     """Markdown tables comparing conditions on their greedy evaluations (``AtariConfig.eval_every``), read from
     the finished cells' json files under ``out_dir``: per game and pair ``(condition, baseline)``, the mean over
     the phase-3 evaluation points (after ``phase1_episodes``) of each seed, and the paired difference over the seeds
-    that ran both, with a 95% bootstrap interval. Empty when no cell was evaluated.
+    that ran both, with 95% Student-t intervals over seeds and a verdict ("ahead", "behind", "no evidence either
+    way"). Empty when no cell was evaluated.
 
     Examples:
         >>> import json, os, tempfile
@@ -914,7 +1008,7 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
         ...     with open(os.path.join(out, "Pooyan", "seed0", f"{cond}.json"), "w") as f:
         ...         json.dump({"evaluations": evals}, f)
         >>> print(greedy_evaluation_markdown(out, [("H1", "A")], phase1_episodes=10).splitlines()[-3])
-        | Pooyan | 1 | 2 | 1.00 [1.00, 1.00] | 3.00 [3.00, 3.00] | 2.00 [2.00, 2.00] | H1 |
+        | Pooyan | 1 | 2 | 1.00 [-inf, inf] | 3.00 [-inf, inf] | 2.00 [-inf, inf] | no evidence either way |
     """
     evals: dict[tuple[str, str], dict[int, float]] = defaultdict(dict)  # (game, condition) -> seed -> mean
     points: dict[tuple[str, str], int] = {}
@@ -931,23 +1025,27 @@ def greedy_evaluation_markdown(out_dir: str, pairs: Sequence[tuple[str, str]], *
         text += (
             f"\n## Greedy evaluation: {condition} vs {baseline}\n\nMean return of the greedy policy (options run as in "
             f"training) on the same freshly seeded games, averaged over the evaluations of phase 3, then over seeds "
-            f"(95% bootstrap intervals).\n\n"
-            f"| game | seeds | evaluations | {baseline} | {condition} | {condition} - {baseline} | better |\n"
+            f"(95% Student-t intervals over seeds; verdict from the paired per-seed difference).\n\n"
+            f"| game | seeds | evaluations | {baseline} | {condition} | {condition} - {baseline} | verdict |\n"
             "|---|---|---|---|---|---|---|\n"
         )
-        ahead = 0
+        ahead, diffs, counts = 0, [], []
         for game in games:
             a, b = evals[(game, condition)], evals[(game, baseline)]
             seeds = sorted(set(a) & set(b))
             if not seeds:
                 continue
-            ci_b = bootstrap_ci([b[s] for s in seeds])
-            ci_a = bootstrap_ci([a[s] for s in seeds])
-            diff = bootstrap_ci([a[s] - b[s] for s in seeds])
+            ci_b = mean_interval([b[s] for s in seeds])
+            ci_a = mean_interval([a[s] for s in seeds])
+            diff = paired_difference_interval([a[s] for s in seeds], [b[s] for s in seeds])
             ahead += diff[0] > 0
+            diffs.append(diff)
+            counts.append(len(seeds))
             text += (f"| {game} | {len(seeds)} | {points[(game, condition)]} | {_ci_text(ci_b)} | {_ci_text(ci_a)} | "
-                     f"{_ci_text(diff)} | {_verdict(diff, condition, baseline)} |\n")
-        text += f"\n`{condition}` ahead of `{baseline}` in greedy evaluation in {ahead} of {len(games)} games.\n"
+                     f"{_ci_text(diff)} | {interval_verdict(diff)} |\n")
+        text += (f"\n`{condition}` against `{baseline}` in greedy evaluation over {len(diffs)} games, on "
+                 f"{_seed_counts(counts)} per game (Student-t intervals of the paired per-seed differences): "
+                 f"{_verdict_counts(diffs)}. Mean difference above 0 in {ahead} of {len(diffs)} games.\n")
     return text
 
 

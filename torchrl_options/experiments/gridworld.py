@@ -35,7 +35,7 @@ from torchrl.envs.utils import step_mdp
 
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
 from torchrl_options.checkpoints import load_file, save_file, tensordict_from_plain, tensordict_to_plain
-from torchrl_options.discovery import discover_options, load_options, save_options
+from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.run_settings import check_run_settings
 from torchrl_options.experiments.validation import check_gridworld_settings
@@ -140,14 +140,21 @@ def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
 
 # ------------------------------------------------------------------------------------------------ discovery
 def _discovery_kwargs(discovery: Mapping[str, Any]) -> dict[str, Any]:
-    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery."""
+    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery.
+
+    What the section leaves out is the paper's setting (:data:`~torchrl_options.discovery.PAPER_SETTINGS`), not
+    :func:`~torchrl_options.discover_options`'s default, so that the recipes reproduce the paper's protocol.
+    """
     return dict(
         num_actions=4,
-        num_cells=discovery.get("num_cells", 2),
-        activation=discovery.get("activation", "tanh"),
-        init=discovery.get("init", "random"),
+        num_cells=discovery.get("num_cells", PAPER_SETTINGS["num_cells"]),
+        activation=discovery.get("activation", PAPER_SETTINGS["activation"]),
+        init=discovery.get("init", PAPER_SETTINGS["init"]),
         batch_size=discovery.get("batch_size"),
-        lr=discovery.get("lr", 1e-2),
+        lr=discovery.get("lr", PAPER_SETTINGS["lr"]),
+        m_steps=discovery.get("m_steps", PAPER_SETTINGS["m_steps"]),
+        restarts=discovery.get("restarts", PAPER_SETTINGS["restarts"]),
+        tol=discovery.get("tol", PAPER_SETTINGS["tol"]),
     )
 
 
@@ -419,11 +426,13 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
 def reach_table(log, target: float, window: int) -> str:
     """Markdown: per setting and condition, the episodes each seed needs for its ``window``-episode mean
     return to reach ``target`` (e.g. the two-rooms convergence of appendix B: a return of 1.0), with a 95%
-    bootstrap interval over seeds; seeds that never reach it count with all their episodes."""
-    from torchrl_options.experiments.results import bootstrap_ci, episodes_to_reach
+    Student-t interval over seeds; seeds that never reach it count with all their episodes."""
+    from torchrl_options.experiments.intervals import mean_interval
+    from torchrl_options.experiments.results import _count, episodes_to_reach
 
     lines = [
-        f"| setting | condition | episodes to a {window}-episode mean return of {target:g} [95% CI] | seeds that reach it |",
+        f"| setting | condition | episodes to a {window}-episode mean return of {target:g} [95% t-interval] | "
+        "seeds that reach it |",
         "|---|---|---|---|",
     ]
     for setting, condition in log.settings_and_conditions():
@@ -433,8 +442,8 @@ def reach_table(log, target: float, window: int) -> str:
             n = episodes_to_reach(returns, target, window)
             reached += n is not None
             counts.append(len(returns) if n is None else n)
-        m, lo, hi = bootstrap_ci(counts)
-        lines.append(f"| {setting} | {condition} | {m:.0f} [{lo:.0f}, {hi:.0f}] | {reached}/{len(runs)} |")
+        m, lo, hi = mean_interval(counts)
+        lines.append(f"| {setting} | {condition} | {_count(m)} [{_count(lo)}, {_count(hi)}] | {reached}/{len(runs)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -502,7 +511,9 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
 def write_summary(
     log: ResultsLog | str | os.PathLike, out_dir: str | os.PathLike, title: str, summary_cfg: Mapping[str, Any] | None = None
 ) -> str:
-    """Writes ``summary.md`` and ``curves.png`` for a ``results.csv`` to ``out_dir``; returns the summary.
+    """Writes ``summary.md`` and ``curves.png`` for a ``results.csv`` to ``out_dir``; returns the summary: per
+    condition, final returns and episodes to the baseline's with 95% Student-t intervals over seeds, and every
+    condition against ``A`` paired by seed, with its verdict (``compare_to_baseline``).
 
     ``summary_cfg`` holds the recipes' ``summary`` keys: ``final_window`` (100), ``smooth_window`` (100),
     ``curve_window`` (50), and ``reach_return`` / ``reach_window`` for an extra table of the episodes to a return.
@@ -516,11 +527,20 @@ def write_summary(
         ...     log.append_cell("supervised", "A", seed, returns=[0.0, 1.0, 1.0, 1.0])
         >>> print(write_summary(log, d, "Demo", {"final_window": 2, "smooth_window": 2}).splitlines()[4])
         | supervised | A | 2 | 4 | 1.000 [1.000, 1.000] | 3 [3, 3] | 2/2 |
+        >>> log.append_cell("supervised", "H1u", 0, returns=[1.0, 1.0, 1.5, 1.5])
+        >>> print(write_summary(log, d, "Demo", {"final_window": 2, "smooth_window": 2}).splitlines()[-1])
+        | supervised | H1u - A | +0.500 [-inf, +inf] | no evidence either way | 1 |
         >>> sorted(os.listdir(d))
         ['curves.png', 'results.csv', 'summary.md']
     """
     from torchrl_options.experiments.plotting import plot_curves
-    from torchrl_options.experiments.results import ResultsLog, summarize, summary_markdown
+    from torchrl_options.experiments.results import (
+        compare_to_baseline,
+        comparison_markdown,
+        ResultsLog,
+        summarize,
+        summary_markdown,
+    )
 
     log = log if isinstance(log, ResultsLog) else ResultsLog(log)
     out = Path(out_dir)
@@ -529,6 +549,9 @@ def write_summary(
     final_window = int(summary_cfg.get("final_window", 100))
     summaries = summarize(log, final_window=final_window, smooth_window=int(summary_cfg.get("smooth_window", 100)))
     text = f"# {title}\n\n" + summary_markdown(summaries, final_window=final_window)
+    comparisons = comparison_markdown(compare_to_baseline(log, final_window=final_window), final_window=final_window)
+    if comparisons:
+        text += "\n" + comparisons
     if summary_cfg.get("reach_return") is not None:
         text += "\n" + reach_table(log, float(summary_cfg["reach_return"]), int(summary_cfg.get("reach_window", 10)))
     (out / "summary.md").write_text(text)

@@ -1,4 +1,5 @@
-"""Experiment results shared by the recipes: a resumable long-format CSV, summaries with bootstrap intervals.
+"""Experiment results shared by the recipes: a resumable long-format CSV, summaries with Student-t intervals over
+seeds (:func:`~torchrl_options.experiments.intervals.mean_interval`) and paired comparisons against a baseline.
 
 Every recipe writes ``results.csv`` with one row per episode, in long format (``setting, condition, seed,
 episode, return`` and optionally ``frames``), appends a cell's rows only when the cell (a setting, condition and
@@ -15,6 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchrl_options.experiments.intervals import (
+    interval_verdict,
+    mean_interval,
+    paired_difference_interval,
+)
 from torchrl_options.experiments.run_settings import (
     describe_differences,
     read_run_settings,
@@ -25,11 +31,13 @@ from torchrl_options.experiments.run_settings import (
 __all__ = [
     "merge_results",
     "ResultsLog",
-    "bootstrap_ci",
     "episodes_to_reach",
     "ConditionSummary",
     "summarize",
     "summary_markdown",
+    "BaselineComparison",
+    "compare_to_baseline",
+    "comparison_markdown",
 ]
 
 logger = logging.getLogger(__name__)
@@ -225,25 +233,6 @@ def _cells(log: ResultsLog) -> dict[tuple[str, str, int], tuple[list[float], lis
     return out
 
 
-def bootstrap_ci(
-    values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, num_resamples: int = 2000, seed: int = 0
-) -> tuple[float, float, float]:
-    """Mean and percentile bootstrap confidence interval of the mean, ``(mean, low, high)``.
-
-    Examples:
-        >>> mean, low, high = bootstrap_ci([1.0, 2.0, 3.0, 4.0])
-        >>> mean, low <= mean <= high
-        (2.5, True)
-    """
-    x = np.asarray(values, dtype=float)
-    if x.size == 0:
-        raise ValueError("bootstrap_ci needs at least one value.")
-    rng = np.random.default_rng(seed)
-    means = x[rng.integers(0, x.size, size=(num_resamples, x.size))].mean(1)
-    alpha = (1 - confidence) / 2
-    return float(x.mean()), float(np.quantile(means, alpha)), float(np.quantile(means, 1 - alpha))
-
-
 def smooth(returns: Sequence[float], window: int) -> np.ndarray:
     """Trailing moving average (the first entries average what is there)."""
     x = np.asarray(returns, dtype=float)
@@ -294,8 +283,8 @@ def summarize(
     The final return of a seed is its mean return over its last ``final_window`` episodes. The target of a
     setting is the baseline condition's mean final return; a seed reaches it at the first episode where its
     ``smooth_window`` moving average does. Seeds that never reach it count with their total number of episodes
-    (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are percentile bootstrap
-    intervals over seeds.
+    (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are Student-t intervals over
+    seeds (:func:`~torchrl_options.experiments.intervals.mean_interval`; one seed gives an unbounded interval).
 
     Examples:
         >>> rows = [{"setting": "s", "condition": c, "seed": 0, "episode": i, "return": float(i >= n)}
@@ -303,7 +292,7 @@ def summarize(
         >>> [(x.condition, x.episodes_to_baseline[0]) for x in summarize(rows, final_window=2, smooth_window=2)]
         [('A', 8.0), ('H1u', 4.0)]
         >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
-        | s | A | 1 | 10 | 1.000 [1.000, 1.000] | 8 [8, 8] | 1/1 |
+        | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [-inf, inf] | 1/1 |
     """
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
@@ -330,14 +319,14 @@ def summarize(
                 n = episodes_to_reach(v, targets[setting], smooth_window)
                 reached += n is not None
                 counts.append(len(v) if n is None else n)
-            to_reach = bootstrap_ci(counts, confidence=confidence)
+            to_reach = mean_interval(counts, confidence=confidence)
         out.append(
             ConditionSummary(
                 setting=setting,
                 condition=condition,
                 num_seeds=len(seeds),
                 num_episodes=max(len(v) for v in seeds.values()),
-                final_return=bootstrap_ci(finals, confidence=confidence),
+                final_return=mean_interval(finals, confidence=confidence),
                 episodes_to_baseline=to_reach,
                 reached=reached,
             )
@@ -345,11 +334,16 @@ def summarize(
     return out
 
 
+def _count(x: float) -> str:
+    """An episode count, or an interval end of one, rounded (never "-0"; infinite ends as "-inf" / "inf")."""
+    return str(round(x)) if np.isfinite(x) else str(x)
+
+
 def summary_markdown(summaries: Sequence[ConditionSummary], *, baseline: str = "A", final_window: int = 100) -> str:
-    """The summary table in Markdown."""
+    """The summary table in Markdown (95% intervals: :data:`~torchrl_options.experiments.intervals.METHOD`)."""
     lines = [
-        f"| setting | condition | seeds | episodes | final return (last {final_window}) [95% CI] | "
-        f"episodes to reach {baseline}'s final return [95% CI] | seeds that reach it |",
+        f"| setting | condition | seeds | episodes | final return (last {final_window}) [95% t-interval] | "
+        f"episodes to reach {baseline}'s final return [95% t-interval] | seeds that reach it |",
         "|---|---|---|---|---|---|---|",
     ]
     for s in summaries:
@@ -358,9 +352,86 @@ def summary_markdown(summaries: Sequence[ConditionSummary], *, baseline: str = "
             reach = "n/a"
         else:
             em, elo, ehi = s.episodes_to_baseline
-            reach = f"{em:.0f} [{elo:.0f}, {ehi:.0f}]"
+            reach = f"{_count(em)} [{_count(elo)}, {_count(ehi)}]"
         lines.append(
             f"| {s.setting} | {s.condition} | {s.num_seeds} | {s.num_episodes} | {m:.3f} [{lo:.3f}, {hi:.3f}] | "
             f"{reach} | {s.reached}/{s.num_seeds} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+@dataclass
+class BaselineComparison:
+    """A condition against the baseline in one setting: the paired per-seed difference of final returns."""
+
+    setting: str
+    condition: str
+    baseline: str
+    num_seeds: int
+    difference: tuple[float, float, float]
+    verdict: str
+
+
+def compare_to_baseline(
+    log: ResultsLog | Iterable[dict], *, baseline: str = "A", final_window: int = 100, confidence: float = 0.95
+) -> list[BaselineComparison]:
+    """Per setting, every other condition against ``baseline`` on the seeds both ran: the mean and Student-t
+    interval of the per-seed difference of final returns (mean return over the last ``final_window`` episodes),
+    and its verdict, "ahead", "behind" or "no evidence either way"
+    (:func:`~torchrl_options.experiments.intervals.paired_difference_interval`).
+
+    Examples:
+        >>> rows = [{"setting": "s", "condition": c, "seed": seed, "episode": i, "return": seed + gain}
+        ...         for c, gain in (("A", 0.0), ("H1u", 0.5)) for seed in range(3) for i in range(4)]
+        >>> [(c.condition, c.difference[0], c.verdict, c.num_seeds) for c in compare_to_baseline(rows)]
+        [('H1u', 0.5, 'ahead', 3)]
+    """
+    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
+    curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    order: list[tuple[str, str]] = []
+    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+        key = (r["setting"], r["condition"])
+        if key not in order:
+            order.append(key)
+        curves[key][r["seed"]].append(r["return"])
+    out = []
+    for setting, condition in order:
+        if condition == baseline or (setting, baseline) not in curves:
+            continue
+        ours, base = curves[(setting, condition)], curves[(setting, baseline)]
+        seeds = sorted(set(ours) & set(base))
+        if not seeds:
+            continue
+        diff = paired_difference_interval(
+            [np.mean(ours[s][-final_window:]) for s in seeds], [np.mean(base[s][-final_window:]) for s in seeds],
+            confidence,
+        )
+        out.append(BaselineComparison(setting, condition, baseline, len(seeds), diff, interval_verdict(diff)))
+    return out
+
+
+def comparison_markdown(comparisons: Sequence[BaselineComparison], *, final_window: int = 100) -> str:
+    """The table of :func:`compare_to_baseline` in Markdown, naming the method and the seeds each verdict rests on.
+
+    Examples:
+        >>> c = BaselineComparison("supervised", "H1u", "A", 3, (0.18, 0.07, 0.29), "ahead")
+        >>> print(comparison_markdown([c]).splitlines()[-1])
+        | supervised | H1u - A | +0.180 [+0.070, +0.290] | ahead | 3 |
+    """
+    if not comparisons:
+        return ""
+    lines = [
+        f"Paired by seed: per seed, the condition's final return (last {final_window} episodes) minus the baseline's; "
+        "mean and 95% Student-t interval of those differences. Verdict "
+        "\"ahead\" / \"behind\" when the interval lies above / below 0, \"no evidence either way\" when it "
+        "contains 0.\n",
+        "| setting | comparison | final-return difference [95% t-interval] | verdict | seeds |",
+        "|---|---|---|---|---|",
+    ]
+    for c in comparisons:
+        m, lo, hi = c.difference
+        lines.append(
+            f"| {c.setting} | {c.condition} - {c.baseline} | {m:+.3f} [{lo:+.3f}, {hi:+.3f}] | {c.verdict} | "
+            f"{c.num_seeds} |"
         )
     return "\n".join(lines) + "\n"

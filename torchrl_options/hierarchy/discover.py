@@ -12,6 +12,7 @@ from tensordict.utils import NestedKey
 from torchrl_options.discovery._validation import check_step_data
 from torchrl_options.discovery.tabulated import expected_counts, tabulate_states
 from torchrl_options.discovery.discover import (
+    DEFAULT_RESTARTS,
     _check_m_steps,
     _check_tol,
     _infer_in_features,
@@ -22,7 +23,6 @@ from torchrl_options.discovery.discover import (
     minibatch,
 )
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
-from torchrl_options.hierarchy.inference import hierarchical_forward_backward
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
 
@@ -67,19 +67,19 @@ def discover_hierarchy(
     num_actions: int | None = None,
     obs_keys: NestedKey | Sequence[NestedKey] = "observation",
     action_key: NestedKey = "action",
-    num_cells: int | Sequence[int] = 2,
+    num_cells: int | Sequence[int] = 8,
     activation: str = "tanh",
     architecture: str = "separate",
     init: str = "random",
-    num_iterations: int | Sequence[int] = 500,
-    m_steps: int | Sequence[int] = 1,
-    tol: float | None = None,
+    num_iterations: int | Sequence[int] = 1000,
+    m_steps: int | Sequence[int] = 5,
+    tol: float | None = 1e-4,
     patience: int = 20,
-    restarts: int | Sequence[int] = 1,
-    restart_iterations: int = 50,
+    restarts: int | None | Sequence[int | None] = None,
+    restart_iterations: int = 40,
     batch_size: int | None = None,
     optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-    lr: float = 1e-2,
+    lr: float = 0.03,
     device: torch.device | str | None = None,
     seed: int | None = None,
     progress: bool = True,
@@ -109,22 +109,24 @@ def discover_hierarchy(
             for every level's modules.
         init (str): level-1 initialisation, ``"random"`` or ``"kmeans"``.
         num_iterations (int or sequence of int): the most iterations (E-steps), for all levels or per level.
-            Defaults to 500.
-        m_steps (int or sequence of int): optimizer steps per E-step, for all levels or per level: 1 (default) is
-            Expectation-Gradient, more a generalised EM (see :func:`~torchrl_options.discover_options`).
+            Defaults to 1000 (the stopping rule usually ends a level sooner).
+        m_steps (int or sequence of int): optimizer steps per E-step, for all levels or per level: 1 is the paper's
+            Expectation-Gradient, more (default 5) a generalised EM (see :func:`~torchrl_options.discover_options`).
         tol (float, optional): stopping rule of every level: stop once its log-likelihood per step has gained less
-            than ``tol`` nats over the last ``patience`` iterations. ``None`` (default): run all iterations.
+            than ``tol`` nats over the last ``patience`` iterations. Defaults to 1e-4; ``None`` runs all
+            iterations.
         patience (int): the stopping rule's window, in iterations. Defaults to 20.
         restarts (int or sequence of int): every level (or each level, from a list) is fitted from ``restarts``
             random initialisations, each trained for at most ``restart_iterations`` iterations; the one with the
             highest training log-likelihood (label-free model selection) then gets the rest of its
             ``num_iterations``. Likelihood training has local optima (an option left unused, two merged), which
-            restarts avoid. Defaults to 1.
+            restarts avoid. ``None`` (default): 4 starts where a level's ``num_iterations`` is at least 4 x
+            ``restart_iterations``, else 1.
         restart_iterations (int): the iterations given to each start when ``restarts > 1`` (capped at the level's
-            ``num_iterations``). Defaults to 50.
+            ``num_iterations``). Defaults to 40.
         batch_size (int, optional): trajectories per minibatch; ``None`` uses all.
         optimizer: a factory called as ``optimizer(params, lr=lr)``, once per level and start. Defaults to Adam.
-        lr (float): learning rate. Defaults to 1e-2.
+        lr (float): learning rate. Defaults to 0.03.
         device: where to train. Defaults to the data's device.
         seed (int, optional): seeds initialisation and minibatch order.
         progress (bool): tqdm progress bars. Defaults to ``True``.
@@ -158,6 +160,12 @@ def discover_hierarchy(
     iterations = _per_level(num_iterations, levels, "num_iterations")
     m_steps = _per_level(m_steps, levels, "m_steps")
     restarts = _per_level(restarts, levels, "restarts")
+    # None: several short starts (as discover_options) where the level's iterations leave room for them
+    restarts = [
+        (DEFAULT_RESTARTS if isinstance(n_iter, int) and n_iter >= DEFAULT_RESTARTS * restart_iterations else 1)
+        if n is None else n
+        for n, n_iter in zip(restarts, iterations)
+    ]
     for n in iterations:
         if not isinstance(n, int) or isinstance(n, bool) or n < 0:
             raise ValueError(f"num_iterations must be ints >= 0, got {n!r}.")
@@ -286,11 +294,8 @@ class HierarchicalEStep:
         loss = self.loss_module
         keys = loss.tensor_keys
         options, meta_control = loss.options, loss.meta_control
-        if loss.diagnostics:
-            with torch.no_grad():
-                record = dict(loss(batch).items())
         with torch.no_grad():
-            p = loss.log_probabilities(batch)
+            p = loss.log_probabilities(batch)  # the batch's one check (one synchronisation)
         mask = p["mask"]
         trained = [p["log_pi"][-1], p["log_term"][-1], p["log_cont"][-1]]
         if meta_control is not None:
@@ -298,15 +303,14 @@ class HierarchicalEStep:
         leaves = [x.detach().requires_grad_() for x in trained]
         log_eta = leaves[3] if meta_control is not None else p["log_eta"]
         with torch.enable_grad():
-            post = hierarchical_forward_backward(
-                p["action"], [*p["log_pi"][:-1], leaves[0]], [*p["log_term"][:-1], leaves[1]],
-                [*p["log_cont"][:-1], leaves[2]], log_eta, mask, p["terminal"], validate=False, backend=loss.backend,
+            # one recursion gives the gradients (the expected counts) and, when logged, the loss's diagnostics
+            post = loss._posterior(
+                p, marginals=loss.diagnostics, log_pi=[*p["log_pi"][:-1], leaves[0]],
+                log_term=[*p["log_term"][:-1], leaves[1]], log_cont=[*p["log_cont"][:-1], leaves[2]], log_eta=log_eta,
             )  # fmt: skip
             grads = torch.autograd.grad(post.log_likelihood.sum(), leaves)
+        record = {k: v.detach() for k, v in loss.loss_outputs(p, post).items()}
         n = mask.sum()
-        ll = post.log_likelihood.detach().sum() / n
-        if not loss.diagnostics:
-            record = {"loss_ddo": -ll, "log_likelihood_per_step": ll}
 
         # the trained level's networks run once per distinct state of the batch
         batch = batch if batch.ndim == 2 else batch.unsqueeze(0)

@@ -172,6 +172,7 @@ def segment(
     check_options_module(options, data, None, action_space=action_space)
     loss = DDOLoss(options, meta_control, action_space=action_space)
     loss.set_keys(action=action_key, mask=mask_key, terminal=terminal_key)
+    loss.loss_mask_key = None  # the valid steps are mask_key's alone
     B = data.batch_size[0]
     step = B if not batch_size else int(batch_size)
     parts = []

@@ -10,11 +10,10 @@ env, collector, exploration module and loss works unchanged on the augmented act
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite, OneHot
@@ -25,6 +24,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["OptionExecutor"]
 
 _NO_OPTION = -1
+# runtime caches kept in the instance __dict__ (as TorchRL's StepCounter does): rebuilt on demand, dropped by
+# empty_cache, set_container, clone and pickling
+_CACHES = ("_base_spec_cache", "_consts", "_direct_call_state")
 
 
 def _level_key(name: str, level: int) -> str:
@@ -47,16 +49,21 @@ class OptionExecutor(Transform):
 
     ``options`` is any TensorDict module that reads the observation and writes ``option_logits``
     ``[..., K, A]`` and ``termination_logits`` ``[..., K]`` (a DDO options module or a hand-written one).
-    It runs under ``torch.no_grad``, once per step: on ``s_{t+1}`` for the termination of the running
-    option, and the same outputs give the option's action at the next step (they are recomputed only when
-    the observation or the options' parameters changed in between, e.g. after a reset). Besides that
-    forward, a step costs a fixed sequence of about 20 small tensor ops, with no host-device
-    synchronisation (an out-of-range action still raises a ``ValueError`` naming the expected range).
+    It runs under ``torch.no_grad``, once per state, when the state is observed (in the step that lands
+    there, or the reset): its termination logits decide whether the running option ends there, and each
+    option's action at that state is drawn right away and kept in the ``"option_actions"`` entry, so the
+    next step reads it instead of running the options again. State lives in the tensordict, as for
+    TorchRL's :class:`~torchrl.envs.transforms.StepCounter`, so the executor works unchanged in batched envs,
+    collectors and worker processes.
 
-    Entries (their names follow ``level``, see below), all of the shape of the action:
+    Entries (their names follow ``level``, see below); all but ``"option_actions"`` have the shape of the
+    action:
 
     - ``"option"`` (state, observation spec): the option running at the start of the step, ``-1`` for
       none. ``data["next", "option"][t] == -1`` exactly when step ``t + 1`` is a decision.
+    - ``"option_actions"`` (state, observation spec, ``[..., K]``): the action each option takes at this
+      state if it is in control here (drawn when the state was observed, from the options' parameters of
+      that time).
     - ``("next", "executed_action")``: the action the env below received (the primitive action at level 1;
       ``-1`` in a reset tensordict).
     - ``("next", "executed_option")``: the option in control at this step, ``-1`` when the policy's
@@ -72,15 +79,23 @@ class OptionExecutor(Transform):
     While a level-1 option invoked by a level-2 option runs, the level-2 option neither acts nor
     terminates: it regains control, and has its termination checked, only once the level-1 option has
     terminated. Level ``L > 1`` entries carry the suffix ``_L`` (``"option_2"``, ``"executed_action_2"``,
-    ``"executed_option_2"``, ``"option_decision_2"``), and the level below is watched through its
-    ``"option"`` entry (``lower_option_key``), so the records of the two levels never clash. Each key can
-    also be set explicitly.
+    ``"executed_option_2"``, ``"option_decision_2"``, ``"option_actions_2"``), and the level below is
+    watched through its ``"option"`` entry (``lower_option_key``), so the records of the two levels never
+    clash. Each key can also be set explicitly.
 
-    Randomness (option actions and terminations) comes from a private generator seeded by the env's
-    ``set_seed`` (also inside :class:`~torchrl.envs.ParallelEnv` workers). ``TransformedEnv.set_seed``
-    does not reach transforms in TorchRL 0.14, so the executor registers itself with the ``set_seed`` of
-    the env that contains it; if never seeded it draws its seed from ``torch``'s global generator on first
-    use.
+    **Randomness** (option actions and terminations): as TorchRL's transforms do, the executor draws from
+    torch's default generator of the env's device, so ``torch.manual_seed`` makes a run reproducible, and
+    inside :class:`~torchrl.envs.ParallelEnv` workers and multi-process collectors the worker's
+    ``set_seed`` seeds it. :meth:`set_seed` gives the executor a private generator instead (its draws then
+    do not depend on, nor shift, those of the policy or of other code). ``env.set_seed`` does not reach
+    transforms in TorchRL.
+
+    **Bad input**: an action outside ``[0, A + K)`` and options writing NaN (or logits whose softmax is not
+    defined: a ``+inf``, or only ``-inf`` for an option) raise a ``ValueError``. On CPU it is raised by the
+    step that received them. On CUDA nothing waits for the device: the step runs with the action clamped
+    into range (the option's action drawn as the last action), a device-side flag records the fault, and the
+    ``ValueError`` is raised by a later step as soon as the flag has reached the host (usually the next one)
+    and at the latest by the next reset.
 
     Args:
         options (TensorDictModuleBase): writes ``option_logits`` ``[..., K, A]`` and ``termination_logits``
@@ -101,6 +116,8 @@ class OptionExecutor(Transform):
         executed_action_key (NestedKey, optional): the executed-action record.
         executed_option_key (NestedKey, optional): the executed-option record.
         decision_key (NestedKey, optional): the decision record.
+        option_actions_key (NestedKey, optional): the state entry of the options' actions at the current
+            state.
         lower_option_key (NestedKey, optional): the running-option entry of the executor below, for
             call-and-return. Defaults to the level ``level - 1`` option key (``None`` at level 1).
         option_logits_key (NestedKey, optional): output of ``options``. Defaults to ``"option_logits"``.
@@ -117,15 +134,18 @@ class OptionExecutor(Transform):
         ...         logits = torch.tensor([[10.0, -10.0], [-10.0, 10.0]]).expand(*obs.shape[:-1], 2, 2)
         ...         return logits, torch.full((*obs.shape[:-1], 2), -1.1)
         >>> options = TensorDictModule(AlwaysPush(), ["observation"], ["option_logits", "termination_logits"])
-        >>> env = GymEnv("CartPole-v1", categorical_action_encoding=True).append_transform(
-        ...     OptionExecutor(options, num_options=2))
+        >>> executor = OptionExecutor(options, num_options=2)
+        >>> env = GymEnv("CartPole-v1", categorical_action_encoding=True).append_transform(executor)
         >>> env.action_spec.n  # 2 primitive actions + 2 options
         4
         >>> check_env_specs(env)
         >>> _ = env.set_seed(0)
+        >>> executor.set_seed(0)  # or torch.manual_seed(0)
         >>> data = env.rollout(10, break_when_any_done=False)
         >>> data["next", "option_decision"].shape, data["next", "executed_action"].dtype
         (torch.Size([10]), torch.int64)
+        >>> data["option_actions"].shape  # each option's action at each state
+        torch.Size([10, 2])
     """
 
     invertible = False
@@ -144,27 +164,36 @@ class OptionExecutor(Transform):
         executed_action_key: NestedKey | None = None,
         executed_option_key: NestedKey | None = None,
         decision_key: NestedKey | None = None,
+        option_actions_key: NestedKey | None = None,
         lower_option_key: NestedKey | None | str = "auto",
         option_logits_key: NestedKey = "option_logits",
         termination_logits_key: NestedKey = "termination_logits",
     ):
-        if not isinstance(num_options, int) or num_options < 1:
-            raise ValueError(f"num_options must be a positive int, got {num_options!r}.")
-        if not isinstance(level, int) or level < 1:
-            raise ValueError(f"level must be a positive int, got {level!r}.")
-        out_keys = getattr(options, "out_keys", None)
-        if out_keys is not None:
-            out_keys = [unravel_key(k) for k in out_keys]
-            for key in (option_logits_key, termination_logits_key):
-                if unravel_key(key) not in out_keys:
-                    raise ValueError(
-                        f"The options module must write {key!r} (expected 'option_logits' [..., K, A] and "
-                        f"'termination_logits' [..., K]); its out_keys are {out_keys}."
-                    )
+        if isinstance(num_options, bool) or not isinstance(num_options, int) or num_options < 1:
+            raise ValueError(f"OptionExecutor: num_options must be a positive int, got {num_options!r}.")
+        if isinstance(level, bool) or not isinstance(level, int) or level < 1:
+            raise ValueError(f"OptionExecutor: level must be a positive int, got {level!r}.")
+        for name, value in (("primitive_actions", primitive_actions), ("greedy", greedy)):
+            if not isinstance(value, bool):
+                raise TypeError(f"OptionExecutor: {name} must be a bool, got {value!r}.")
+        if not callable(options) or not hasattr(options, "out_keys"):
+            raise TypeError(
+                "OptionExecutor: options must be a TensorDict module (e.g. a tensordict.nn.TensorDictModule) "
+                f"with in_keys and out_keys, got {type(options).__name__}."
+            )
+        out_keys = [unravel_key(k) for k in options.out_keys]
+        for key in (option_logits_key, termination_logits_key):
+            if unravel_key(key) not in out_keys:
+                raise ValueError(
+                    f"OptionExecutor: the options module must write {key!r} (expected 'option_logits' "
+                    f"[..., K, A] and 'termination_logits' [..., K]); its out_keys are {out_keys}."
+                )
+        in_keys = getattr(options, "in_keys", None)
         self.option_key = unravel_key(option_key or _level_key("option", level))
         self.executed_action_key = unravel_key(executed_action_key or _level_key("executed_action", level))
         self.executed_option_key = unravel_key(executed_option_key or _level_key("executed_option", level))
         self.decision_key = unravel_key(decision_key or _level_key("option_decision", level))
+        self.option_actions_key = unravel_key(option_actions_key or _level_key("option_actions", level))
         if lower_option_key == "auto":
             lower_option_key = None if level == 1 else _level_key("option", level - 1)
         self.lower_option_key = None if lower_option_key is None else unravel_key(lower_option_key)
@@ -172,17 +201,23 @@ class OptionExecutor(Transform):
         self.done_key = unravel_key(done_key)
         self.option_logits_key = unravel_key(option_logits_key)
         self.termination_logits_key = unravel_key(termination_logits_key)
-        records = [self.option_key, self.executed_action_key, self.executed_option_key, self.decision_key]
+        records = [
+            self.option_key,
+            self.option_actions_key,
+            self.executed_action_key,
+            self.executed_option_key,
+            self.decision_key,
+        ]
+        if len(set(records)) != len(records):
+            raise ValueError(f"OptionExecutor: the record keys must differ, got {records}.")
         super().__init__(in_keys=[], out_keys=records)
         self.options = options
         self.num_options = num_options
         self.primitive_actions = primitive_actions
         self.greedy = greedy
         self.level = level
-        in_keys = getattr(options, "in_keys", None)
         self._options_in_keys = None if in_keys is None else [unravel_key(k) for k in in_keys]
-        self._options_params = list(options.parameters()) + list(options.buffers())
-        self._generator: torch.Generator | None = None
+        self._seed: int | None = None
 
     # ------------------------------------------------------------------ specs
     @property
@@ -206,7 +241,7 @@ class OptionExecutor(Transform):
 
     def _check_action_spec(self, full_action_spec: Composite) -> Categorical:
         if self.action_key not in full_action_spec.keys(True, True):
-            raise KeyError(
+            raise ValueError(
                 f"OptionExecutor expected an action entry {self.action_key!r} in the env's action spec, "
                 f"found {list(full_action_spec.keys(True, True))}."
             )
@@ -218,6 +253,22 @@ class OptionExecutor(Transform):
                 "categorical_action_encoding=True))."
             )
         return spec
+
+    def _check_observation_keys(self, observation_spec: Composite) -> None:
+        """The options' inputs and the level below's running-option entry must be observations."""
+        keys = list(observation_spec.keys(True, True))
+        if self.lower_option_key is not None and self.lower_option_key not in keys:
+            raise ValueError(
+                f"OptionExecutor(level={self.level}) expected the running-option entry "
+                f"{self.lower_option_key!r} of the executor below it in the observation spec; found {keys}. "
+                "Set lower_option_key (None if there is no executor below)."
+            )
+        missing = [k for k in self._options_in_keys or () if k not in keys]
+        if missing:
+            raise ValueError(
+                f"OptionExecutor: the options module reads {missing}, which the env does not observe (its "
+                f"observation spec has {keys})."
+            )
 
     def transform_input_spec(self, input_spec: Composite) -> Composite:
         input_spec = input_spec.clone()
@@ -232,14 +283,11 @@ class OptionExecutor(Transform):
         spec = self._base_action_spec()
         shape, device = spec.shape, spec.device
         K = self.num_options
-        if self.lower_option_key is not None and self.lower_option_key not in observation_spec.keys(True, True):
-            raise KeyError(
-                f"OptionExecutor(level={self.level}) expected the running-option entry "
-                f"{self.lower_option_key!r} of the executor below it in the observation spec; found "
-                f"{list(observation_spec.keys(True, True))}. Set lower_option_key (None if there is no "
-                "executor below)."
-            )
+        self._check_observation_keys(observation_spec)
         observation_spec[self.option_key] = Bounded(-1, K - 1, shape=shape, dtype=torch.int64, device=device)
+        observation_spec[self.option_actions_key] = Bounded(
+            0, spec.n - 1, shape=(*shape, K), dtype=spec.dtype, device=device
+        )
         observation_spec[self.executed_option_key] = Bounded(
             -1, K - 1, shape=shape, dtype=torch.int64, device=device
         )
@@ -249,169 +297,248 @@ class OptionExecutor(Transform):
         observation_spec[self.decision_key] = Categorical(2, shape=shape, dtype=torch.bool, device=device)
         return observation_spec
 
-    # ----------------------------------------------------------- randomness
     def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
-        self.__dict__.pop("_base_spec_cache", None)
-        self.__dict__.pop("_consts", None)
-        self.__dict__.pop("_options_cache", None)
-        self._register_seed_hook()
-        if self.parent is not None:
-            self._base_action_spec()  # a wrong action spec fails here, when the executor is appended
+        self._drop_caches()
+        self.__dict__.pop("_generators", None)  # a clone attached to another env restarts from the seed
+        parent = self.parent
+        if parent is not None:  # a wrong action spec or missing inputs fail here, when the executor is appended
+            self._base_action_spec()
+            self._check_observation_keys(parent.observation_spec)
 
-    def _register_seed_hook(self) -> None:
-        try:
-            env = self.container
-        except (AttributeError, ValueError):
-            return
-        if env is None:
-            return
-        hook = env.__dict__.get("set_seed")
-        if not isinstance(hook, _SeedExecutors):
-            env.__dict__["set_seed"] = _SeedExecutors(env)
+    def empty_cache(self) -> None:
+        self._drop_caches()
+        super().empty_cache()
 
-    def set_seed(self, seed: int) -> None:
-        """Seeds the generator of the options' action and termination draws."""
-        device = self._base_action_spec().device if self.parent is not None else torch.device("cpu")
-        self._generator = torch.Generator(device=device or "cpu")
-        self._generator.manual_seed(int(seed) % (2**63))
+    def _drop_caches(self) -> None:
+        for name in _CACHES:
+            self.__dict__.pop(name, None)
 
-    def _rng(self) -> torch.Generator:
-        if self._generator is None:
-            self.set_seed(int(torch.randint(0, 2**62, ())))
-        return self._generator
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        for name in (*_CACHES, "_generators"):
+            state.pop(name, None)
+        return state
+
+    # ----------------------------------------------------------- randomness
+    def set_seed(self, seed: int | None) -> None:
+        """Gives the executor a private generator seeded with ``seed`` (``None``: back to torch's default one).
+
+        Without it the options' action and termination draws come from torch's default generator of the env's
+        device, as for TorchRL's transforms (``torch.manual_seed`` seeds it).
+        """
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise TypeError(f"OptionExecutor.set_seed: seed must be an int or None, got {seed!r}.")
+        self._seed = seed
+        self.__dict__.pop("_generators", None)
+
+    @property
+    def generator(self) -> torch.Generator | None:
+        """The private generator of the draws on the env's device (``None`` when torch's default one is used).
+
+        Its ``get_state`` / ``set_state`` save and restore the executor's random state.
+        """
+        if self._seed is None:
+            return None
+        return self._generator(torch.device(self._base_action_spec().device or "cpu"))
+
+    def _generator(self, device: torch.device) -> torch.Generator | None:
+        if self._seed is None:
+            return None
+        generators = self.__dict__.setdefault("_generators", {})
+        generator = generators.get(device)
+        if generator is None:
+            generator = generators[device] = torch.Generator(device=device)
+            generator.manual_seed(self._seed % (2**63))
+        return generator
 
     # -------------------------------------------------------------- options
     def _constants(self, device: torch.device) -> _StepConstants:
-        """Sizes, lookup tables and scratch buffers of the per-step code, built once per device."""
+        """Sizes, lookup table and bad-input flags of the per-step code, built once per device."""
         consts = self.__dict__.get("_consts")
         if consts is None or consts.device != device:
             spec = self._base_action_spec()
             A, K = spec.n, self.num_options
-            n = spec.shape.numel()
             shift = A if self.primitive_actions else 0
+            n = spec.shape.numel()
             consts = _StepConstants(
                 device=device,
-                cpu=torch.device(device).type == "cpu",
                 A=A,
                 K=K,
                 n_aug=shift + K,
                 shape=spec.shape,
                 n=n,
-                flat=len(spec.shape) == 1,
+                dtype=spec.dtype,
                 # augmented action -> the option it starts at a decision, -1 for a primitive action
                 decode=(torch.arange(shift + K, device=device) - shift).clamp_min(_NO_OPTION),
                 arange=torch.arange(n, device=device),
                 no_option=torch.tensor(_NO_OPTION, device=device),
-                uniform=torch.empty((n, 1), device=device),
-                coin=torch.empty(n, device=device),
+                # buffers the uniforms are drawn into (torch.rand without an allocation); no output references them
+                u_actions=torch.empty((*spec.shape, K, 1), device=device),
+                u_terminations=torch.empty(spec.shape, device=device),
+                deferred=_DeferredFlags(device) if _defers_checks(device) else None,
+                generator=self._generator(device),
             )
             self.__dict__["_consts"] = consts
         return consts
 
-    def _params_version(self) -> list[int] | None:
-        try:
-            return [p._version for p in self._options_params]
-        except RuntimeError:  # parameters created in inference mode: no version counter, never cached
-            return None
-
     def _evaluate_options(
-        self, tensordict: TensorDictBase, consts: _StepConstants, cache: bool = False
+        self, tensordict: TensorDictBase, consts: _StepConstants
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``option_logits`` ``[N, K, A]`` and ``termination_logits`` ``[N, K]`` (batch flattened).
-
-        The termination at ``s_{t+1}`` and the action at the next step need the options at the same state:
-        the outputs computed in ``_step`` are kept (``cache=True``) and reused by the next ``_inv_call`` when
-        it reads the very same input tensors, unmodified since (same objects, same version counters: the
-        next observation is passed on by reference by ``step_mdp``; a partial reset or batched env buffers
-        writing into them in place bump their versions), and the options' parameters are unchanged. So the
-        options run once per step, and no input is copied or compared element-wise (except inference-mode
-        tensors, which have no version counter: a copy of them is kept and compared).
-        """
-        keys = self._options_in_keys
-        inputs = None
-        if keys is not None:
-            inputs = [_get(tensordict, key) for key in keys]
-            cached = self.__dict__.get("_options_cache")
-            if cached is not None:
-                for x, (ref, version, copy) in zip(inputs, cached[0]):
-                    if copy is None:  # a tensor with a version counter: the same one, not written since
-                        if x is not ref or x._version != version:
-                            break
-                    elif x is None or x.shape != copy.shape or not torch.equal(x, copy):  # an inference tensor
-                        break
-                else:
-                    params = self._params_version()
-                    if params is not None and params == cached[1]:
-                        return cached[2], cached[3]
+        """Each option's action ``[*batch, K]`` drawn at the state of ``tensordict``, and the termination logits
+        ``[*batch, K]`` there."""
         with torch.no_grad():
-            logits, term = self._call_options(tensordict, inputs)
-        K, A, n = consts.K, consts.A, consts.n
+            logits, term = self._call_options(tensordict)
+        K, A, shape = consts.K, consts.A, consts.shape
+        if logits.shape[-2:] != (K, A) or logits.shape[:-2].numel() != shape.numel():
+            raise ValueError(
+                f"OptionExecutor: the options module wrote {self.option_logits_key!r} of shape "
+                f"{tuple(logits.shape)}; expected [*batch, K={K}, A={A}] with batch {tuple(shape)}."
+            )
+        if term.shape[-1] != K or term.shape[:-1].numel() != shape.numel():
+            raise ValueError(
+                f"OptionExecutor: the options module wrote {self.termination_logits_key!r} of shape "
+                f"{tuple(term.shape)}; expected [*batch, K={K}] with batch {tuple(shape)}."
+            )
+        if logits.shape[:-2] != shape:
+            logits = logits.reshape(*shape, K, A)
+        if term.shape[:-1] != shape:
+            term = term.reshape(*shape, K)
+        if self.greedy:
+            actions = logits.argmax(-1)
+            total = logits.sum(-1)  # NaN if a row has a NaN
+        else:
+            # inverse-CDF draw, one uniform per env and option; right=True never picks a zero-probability action,
+            # the clamp keeps rounding (a CDF ending below u) from giving A
+            cdf = logits.softmax(-1).cumsum(-1)
+            u = _uniform(consts.u_actions, cdf.dtype, consts.generator)
+            actions = torch.searchsorted(cdf, u, right=True).squeeze(-1).clamp_max_(A - 1)
+            total = cdf[..., -1]  # NaN if a row's softmax is: a NaN, a +inf or only -inf in the row
+        self._check_options_outputs(consts, total, logits, term)
+        return (actions if actions.dtype is consts.dtype else actions.to(consts.dtype)), term
+
+    def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        keys = self._options_in_keys
+        if keys is not None:
+            inputs = [tensordict.get(key, None) for key in keys]
+            missing = [key for key, x in zip(keys, inputs) if x is None]
+            if missing:
+                raise ValueError(
+                    f"OptionExecutor: the options module reads {missing}, missing from the env's output (it has "
+                    f"{list(tensordict.keys(True, True))})."
+                )
+            direct = self._direct_call(tensordict, inputs)
+            if direct is not None:
+                return direct
+            out = self.options(tensordict.select(*keys))
+        else:
+            out = self.options(tensordict.copy())
+        logits, term = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
         if logits is None or term is None:
-            raise KeyError(
-                f"The options module did not write {self.option_logits_key!r} and "
-                f"{self.termination_logits_key!r}."
-            )
-        if logits.shape[-2:] != (K, A) or logits.shape[:-2].numel() != n:
             raise ValueError(
-                f"The options module wrote {self.option_logits_key!r} of shape {tuple(logits.shape)}; "
-                f"expected [*batch, K={K}, A={A}] with batch {tuple(consts.shape)}."
+                f"OptionExecutor: the options module did not write {self.option_logits_key!r} and "
+                f"{self.termination_logits_key!r}; it wrote {list(out.keys(True, True))}."
             )
-        if term.shape[-1] != K or term.shape[:-1].numel() != n:
-            raise ValueError(
-                f"The options module wrote {self.termination_logits_key!r} of shape {tuple(term.shape)}; "
-                f"expected [*batch, K={K}] with batch {tuple(consts.shape)}."
-            )
-        if logits.dim() != 3:
-            logits = logits.reshape(n, K, A)
-        if term.dim() != 2:
-            term = term.reshape(n, K)
-        if cache and inputs is not None:
-            entries = _cache_entries(inputs)  # None (no caching) when an input is missing or not a tensor
-            if entries is not None:
-                self.__dict__["_options_cache"] = (entries, self._params_version(), logits, term)
         return logits, term
 
-    def _call_options(
-        self, tensordict: TensorDictBase, inputs: list[torch.Tensor] | None
-    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        options = self.options
-        if (
-            inputs is not None
-            and type(options) is TensorDictModule
-            and options._kwargs is None
-            and options.method is None
-            and not options.method_kwargs
-            and not options._get_kwargs
-            and all(x is not None for x in inputs)
-        ):
-            # hot path: TensorDictModule.forward costs more than a small MLP (dispatch, output wrapping)
-            out = options.module(*inputs)
-            out = dict(zip(options.out_keys_source, out if isinstance(out, tuple) else (out,)))
-            return out.get(self.option_logits_key), out.get(self.termination_logits_key)
-        keys = self._options_in_keys
-        out = options(tensordict.select(*keys, strict=False) if keys is not None else tensordict.copy())
-        return out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
+    def _direct_call(
+        self, tensordict: TensorDictBase, inputs: list[torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The outputs of a plain ``TensorDictModule`` from its ``module`` called on the input tensors.
 
-    def _lower_ready(self, tensordict: TensorDictBase, shape: torch.Size) -> torch.Tensor | bool:
-        """Whether the level below waits for an action (no lower option running)."""
-        if self.lower_option_key is None:
-            return True
-        return _get(tensordict, self.lower_option_key).reshape(shape) < 0
+        ``TensorDictModule.forward`` wraps every output in a TensorDict, which costs more than a small MLP inside an
+        env step. For a plain ``TensorDictModule`` (no ``method``), the first call runs both ways and compares the
+        outputs: when they agree, later calls go through ``options.module`` directly (the same computation: positional
+        inputs in ``in_keys`` order, outputs in ``out_keys_source`` order); otherwise (e.g. inputs mapped to keyword
+        arguments in another order, a stochastic module) they keep going through the TensorDict call.
+        """
+        options = self.options
+        state = self.__dict__.get("_direct_call_state")
+        if state is not None and state[0] is options:
+            if state[1] is None:
+                return None
+            out = options.module(*inputs)
+            return out[state[1]], out[state[2]]
+        positions = None
+        if type(options) is TensorDictModule and options.method is None and not options.method_kwargs:
+            out_keys = [unravel_key(k) for k in options.out_keys_source]
+            i, j = out_keys.index(self.option_logits_key), out_keys.index(self.termination_logits_key)
+            out = options(tensordict.select(*self._options_in_keys))
+            expected = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
+            try:
+                direct = options.module(*inputs)
+                direct = (direct[i], direct[j]) if isinstance(direct, tuple) and len(direct) == len(out_keys) else None
+            except Exception:  # noqa: BLE001 - any failure means "not callable that way"
+                direct = None
+            if (
+                direct is not None
+                and all(isinstance(x, torch.Tensor) for x in (*direct, *expected))
+                and all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(direct, expected))
+            ):
+                positions = (i, j)
+        self.__dict__["_direct_call_state"] = (options, *(positions or (None, None)))
+        return direct if positions is not None else None
+
+    # ---------------------------------------------------------------- checks
+    def _check_options_outputs(
+        self, consts: _StepConstants, total: torch.Tensor, logits: torch.Tensor, term: torch.Tensor
+    ) -> None:
+        """Raises if a row of ``total`` (NaN for an unusable row of action logits) or ``term`` is NaN.
+
+        On the CPU one sum tells whether anything is NaN (a false alarm, from ``+inf`` and ``-inf`` termination
+        logits, is cleared by the exact check); on CUDA the exact flag is recorded for a later step.
+        """
+        if consts.deferred is None:
+            s = float((total + term).sum())
+            if s != s and (torch.isnan(total).any() or torch.isnan(term).any()):
+                raise ValueError(self._nan_message(logits, term))
+        else:
+            consts.deferred.add(_NAN, torch.isnan(total).any() | torch.isnan(term).any())
+
+    def _raise_deferred(self, consts: _StepConstants, wait: bool = False) -> None:
+        """Raises for the faults that earlier CUDA steps flagged, once the flags reached the host."""
+        if consts.deferred is None:
+            return
+        faults = consts.deferred.read(wait)
+        if faults[_RANGE]:
+            raise ValueError(
+                self._range_message(None)
+                + f" An earlier step on {consts.device} received such an action (checked without waiting for the "
+                "device; that step ran it clamped into range)."
+            )
+        if faults[_NAN]:
+            raise ValueError(
+                f"OptionExecutor: the options module wrote NaN (or logits without a valid softmax) in "
+                f"{self.option_logits_key!r} or {self.termination_logits_key!r} at an earlier step on "
+                f"{consts.device} (checked without waiting for the device)."
+            )
+
+    def _nan_message(self, logits: torch.Tensor, term: torch.Tensor) -> str:
+        if torch.isnan(term).any():
+            where, what = self.termination_logits_key, "NaN"
+        elif torch.isnan(logits).any():
+            where, what = self.option_logits_key, "NaN"
+        else:
+            where, what = self.option_logits_key, "a row without a valid softmax (a +inf, or only -inf) for an option"
+        return (
+            f"OptionExecutor: the options module wrote {what} in {where!r}; the options cannot act or terminate "
+            "there. Check the options' parameters and inputs."
+        )
 
     def _decode(self, action: torch.Tensor, consts: _StepConstants) -> torch.Tensor:
         """The option that ``action`` starts at a decision (``-1`` for a primitive action).
 
-        The table lookup is also the range check: ``gather`` bounds-checks its indices (negative ones
-        included) in the same kernel, so valid actions cost no extra op and no host-device sync. On an
-        accelerator, where the lookup would only fail with a device-side assert, the range is asserted
-        asynchronously first (``torch._assert_async``, with the same message).
+        The table lookup is also the range check: on the CPU ``gather`` bounds-checks its indices (negative ones
+        included) in the same kernel, so valid actions cost no extra op. On CUDA, where an out-of-range index would
+        be a device-side assert, the action is clamped into range and the fault flagged (see the class docstring).
         """
-        index = action if action.dim() == 1 else action.reshape(-1)
+        index = action.reshape(-1)
         if index.dtype is not torch.int64:
             index = index.long()
-        if not consts.cpu:
-            torch._assert_async(((index >= 0) & (index < consts.n_aug)).all(), self._range_message(None))
+        if consts.deferred is not None:
+            clamped = index.clamp(0, consts.n_aug - 1)
+            consts.deferred.add(_RANGE, (clamped != index).any())
+            index = clamped
         try:
             option = consts.decode.gather(0, index)
         except RuntimeError:
@@ -419,7 +546,7 @@ class OptionExecutor(Transform):
             if lo < 0 or hi >= consts.n_aug:
                 raise ValueError(self._range_message((lo, hi))) from None
             raise
-        return option if consts.flat else option.view(consts.shape)
+        return option.view(action.shape)
 
     def _range_message(self, got: tuple[int, int] | None) -> str:
         n_aug = self.num_augmented_actions
@@ -429,49 +556,41 @@ class OptionExecutor(Transform):
         )
         return message + (f", got values in [{got[0]}, {got[1]}]." if got is not None else ".")
 
-    def _check_action_range(self, action: torch.Tensor) -> None:
-        """Raises a ``ValueError`` naming the expected range if ``action`` holds an out-of-range index."""
-        self._decode(action, self._constants(action.device))
+    def _state(self, tensordict: TensorDictBase, key: NestedKey) -> torch.Tensor:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise ValueError(
+                f"OptionExecutor: the state entry {key!r} is missing from the input of env.step. Reset the env "
+                "first and pass the tensordict returned by reset/step_mdp."
+            )
+        return value
+
+    def _lower_ready(self, tensordict: TensorDictBase, shape: torch.Size) -> torch.Tensor:
+        """Whether the level below waits for an action (no lower option running)."""
+        return self._state(tensordict, self.lower_option_key).reshape(shape) < 0
 
     # ------------------------------------------------------------ env hooks
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # the option is chosen with the action at s_t and acts at s_t. Per-step code: a fixed sequence of
-        # small tensor ops (masks, no branch on tensor values), no host-device sync, unvalidated tensordict
-        # writes; the options' outputs come from the previous step's _step (see _evaluate_options)
-        action = _get(tensordict, self.action_key)
-        running = _get(tensordict, self.option_key)
-        if running is None:
-            raise KeyError(
-                f"OptionExecutor: the running-option entry {self.option_key!r} is missing from the input of "
-                "env.step. Reset the env first and pass the tensordict returned by reset/step_mdp."
-            )
+        # the option is chosen with the action at s_t and acts at s_t with the action drawn for it when s_t was
+        # observed. Per-step code: a fixed sequence of small tensor ops (masks, no branch on tensor values), no
+        # host-device sync on CUDA
+        action = tensordict.get(self.action_key, None)
+        if action is None:
+            raise ValueError(f"OptionExecutor: the input of env.step has no action entry {self.action_key!r}.")
+        running = self._state(tensordict, self.option_key)
+        option_actions = self._state(tensordict, self.option_actions_key)
         consts = self.__dict__.get("_consts")
         if consts is None or consts.device != action.device:
             consts = self._constants(action.device)
+        self._raise_deferred(consts)
         started = self._decode(action, consts)  # also the range check
         decision = running < 0
         if self.lower_option_key is not None:
             lower_ready = self._lower_ready(tensordict, action.shape)
             decision = decision & lower_ready
         option = torch.where(decision, started, running)  # -1: the policy's primitive action runs
-
-        logits = self._evaluate_options(tensordict, consts)[0]
-        # the running option's row for each env; option -1 picks row K-1, whose draw is then not used
-        logits = logits[consts.arange, option if consts.flat else option.reshape(-1)]
-        if self.greedy:
-            option_action = logits.argmax(-1)
-        else:
-            # inverse-CDF draw with one uniform per env: fewer kernels than torch.multinomial; the clamp keeps
-            # rounding (a CDF ending below u) from giving an action >= A. The uniforms fill a buffer that no
-            # output references (the same draws as torch.rand)
-            generator = self._generator if self._generator is not None else self._rng()
-            u = consts.uniform.uniform_(generator=generator)
-            if u.dtype is not logits.dtype:  # e.g. float64 options
-                u = u.to(logits.dtype)
-            option_action = torch.searchsorted(logits.softmax(-1).cumsum(-1), u, right=True)
-            option_action = option_action.clamp_max_(consts.A - 1).view(-1)
-        if not consts.flat:
-            option_action = option_action.view(consts.shape)
+        # the running option's action (option -1 reads option K-1's, which is then not used)
+        option_action = _pick(option_actions, option, consts)
         if option_action.dtype is not action.dtype:
             option_action = option_action.to(action.dtype)
         if self.lower_option_key is None:
@@ -486,48 +605,54 @@ class OptionExecutor(Transform):
 
         # tensordict is the shallow copy given to the env below: the policy's action stays in the data. The
         # records are stashed under this level's keys: a lower executor in the same Compose rewrites the action
-        _set(tensordict, self.action_key, executed)
-        _set(tensordict, self.executed_action_key, executed)
-        _set(tensordict, self.executed_option_key, option)
-        _set(tensordict, self.decision_key, decision)
+        tensordict.set(self.action_key, executed)
+        tensordict.set(self.executed_action_key, executed)
+        tensordict.set(self.executed_option_key, option)
+        tensordict.set(self.decision_key, decision)
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        option = _get(tensordict, self.executed_option_key)
+        option = tensordict.get(self.executed_option_key)
         consts = self.__dict__.get("_consts")
         if consts is None or consts.device != option.device:
             consts = self._constants(option.device)
-        flat_option = option if consts.flat else option.reshape(-1)
-        # the termination of the running option is evaluated at s_{t+1}; these options outputs are kept for
-        # the option's action at the next step
-        term_logits = self._evaluate_options(next_tensordict, consts, cache=True)[1]
-        # option -1 (primitive) picks column K-1: its draw is not used, the option stays -1
-        term_logits = term_logits[consts.arange, flat_option]
-        # terminate w.p. sigmoid(logit); the uniforms fill a buffer that no output references
-        generator = self._generator if self._generator is not None else self._rng()
-        terminate = consts.coin.uniform_(generator=generator) < term_logits.sigmoid()
+        # the options at s_{t+1}: the termination of the running option, and each option's action there
+        option_actions, term_logits = self._evaluate_options(next_tensordict, consts)
+        # option -1 (primitive) reads column K-1: its draw is not used, the option stays -1
+        term_logits = _pick(term_logits, option, consts)
+        u = _uniform(consts.u_terminations, term_logits.dtype, consts.generator)
+        terminate = u < term_logits.sigmoid()
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
             terminate = terminate & self._lower_ready(next_tensordict, terminate.shape)
         # the end of an episode ends the option too; option == -1 stays -1
-        ends = terminate | _get(next_tensordict, self.done_key).view(-1)
-        if not consts.flat:
-            ends = ends.view(consts.shape)
-        _set(next_tensordict, self.option_key, torch.where(ends, consts.no_option, option))
-        _set(next_tensordict, self.executed_action_key, _get(tensordict, self.executed_action_key))
-        _set(next_tensordict, self.executed_option_key, option)
-        _set(next_tensordict, self.decision_key, _get(tensordict, self.decision_key))
+        done = next_tensordict.get(self.done_key, None)
+        if done is None:
+            raise ValueError(f"OptionExecutor: the env's output has no done entry {self.done_key!r} (done_key).")
+        ends = terminate | done.reshape(terminate.shape)
+        next_tensordict.set(self.option_key, torch.where(ends, consts.no_option, option))
+        next_tensordict.set(self.option_actions_key, option_actions)
+        next_tensordict.set(self.executed_action_key, tensordict.get(self.executed_action_key))
+        next_tensordict.set(self.executed_option_key, option)
+        next_tensordict.set(self.decision_key, tensordict.get(self.decision_key))
+        if consts.deferred is not None:
+            consts.deferred.publish()
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._register_seed_hook()
         spec = self._base_action_spec()
-        shape, device = spec.shape, spec.device
-        reset = _get(tensordict, _reset_key(self.done_key)) if tensordict is not None else None
+        shape = spec.shape
+        device = torch.device(spec.device or "cpu")
+        consts = self.__dict__.get("_consts")
+        if consts is None or consts.device != device:
+            consts = self._constants(device)
+        self._raise_deferred(consts, wait=True)  # resets already wait for the device (done.any())
+        option_actions, _ = self._evaluate_options(tensordict_reset, consts)
+        reset = tensordict.get(_reset_key(self.done_key), None) if tensordict is not None else None
         if reset is not None:
             reset = reset.reshape(shape)
-        # a new episode starts with a decision; the records are empty (-1 / False) until its first step.
-        # Only envs flagged by "_reset" change (TorchRL also merges non-reset envs back after _reset)
+        # a new episode starts with a decision; the records are empty (-1 / False) until its first step. Only
+        # envs flagged by "_reset" change (TorchRL also keeps the entries of the other envs after _reset)
         entries = (
             (self.option_key, _NO_OPTION, torch.int64),
             (self.executed_option_key, _NO_OPTION, torch.int64),
@@ -535,18 +660,25 @@ class OptionExecutor(Transform):
             (self.decision_key, False, torch.bool),
         )
         for key, default, dtype in entries:
-            prev = _get(tensordict, key) if tensordict is not None and reset is not None else None
+            prev = tensordict.get(key, None) if reset is not None else None
             if prev is None:
                 value = torch.full(shape, default, dtype=dtype, device=device)
             else:
                 value = torch.where(reset, default, prev.reshape(shape))
-            _set(tensordict_reset, key, value)
+            tensordict_reset.set(key, value)
+        prev = tensordict.get(self.option_actions_key, None) if reset is not None else None
+        if prev is not None:
+            option_actions = torch.where(reset.unsqueeze(-1), option_actions, prev.reshape(option_actions.shape))
+        tensordict_reset.set(self.option_actions_key, option_actions)
+        if consts.deferred is not None:
+            consts.deferred.publish()
         return tensordict_reset
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise NotImplementedError(
             "OptionExecutor runs inside an environment step; it has no replay-buffer (forward) mode. "
-            "Use torchrl_options.data.SMDPTransitions to turn its step-level data into decisions."
+            "Use torchrl_options.data.SMDPTransform (a replay-buffer transform) or SMDPTransitions to turn its "
+            "step-level data into decisions."
         )
 
     def __repr__(self) -> str:
@@ -556,52 +688,83 @@ class OptionExecutor(Transform):
         )
 
 
+_RANGE, _NAN = 0, 1  # bad-input flags
+
+
+def _defers_checks(device: torch.device) -> bool:
+    """Whether bad-input checks on ``device`` are deferred (CUDA: reading a device value on the host would wait)."""
+    return device.type == "cuda"
+
+
+class _DeferredFlags:
+    """Bad-input flags set on the device and read by the host without waiting for the device.
+
+    ``add`` ORs a flag on the device; ``publish`` starts a copy of the flags to (pinned) host memory, non-blocking on
+    CUDA, and records an event; ``read`` looks at the last copy once its event has completed (``wait=True`` waits for
+    it) and clears the flags it reports. Flags stay set until read, so a fault is never lost between two reads.
+    """
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.flags = torch.zeros(2, dtype=torch.bool, device=device)
+        self.host = torch.zeros(2, dtype=torch.bool, pin_memory=self.cuda)
+        self.event = torch.cuda.Event() if self.cuda else None
+        self.published = False
+
+    def add(self, kind: int, invalid: torch.Tensor) -> None:
+        self.flags[kind].logical_or_(invalid)
+
+    def publish(self) -> None:
+        self.host.copy_(self.flags, non_blocking=self.cuda)
+        if self.event is not None:
+            self.event.record()
+        self.published = True
+
+    def read(self, wait: bool = False) -> list[bool]:
+        if not self.published:
+            return [False, False]
+        if self.event is not None:
+            if wait:
+                self.event.synchronize()
+            elif not self.event.query():
+                return [False, False]
+        faults = self.host.tolist()
+        if any(faults):  # reported once
+            self.flags.zero_()
+            self.host.zero_()
+            self.published = False
+        return faults
+
+
 class _StepConstants(NamedTuple):
     device: torch.device
-    cpu: bool
     A: int  # actions of the env below
     K: int  # options
     n_aug: int  # policy-facing actions
     shape: torch.Size  # action shape (the env's batch)
     n: int  # envs in the batch
-    flat: bool  # the action shape is [n]: no reshapes
+    dtype: torch.dtype  # action dtype
     decode: torch.Tensor  # [n_aug]: augmented action -> option started (-1: primitive)
     arange: torch.Tensor  # [n]
     no_option: torch.Tensor  # -1, 0-dim
-    uniform: torch.Tensor  # [n, 1] buffer of the action draws (never returned)
-    coin: torch.Tensor  # [n] buffer of the termination draws (never returned)
+    u_actions: torch.Tensor  # [*shape, K, 1] float32 buffer of the action draws
+    u_terminations: torch.Tensor  # [*shape] float32 buffer of the termination draws
+    deferred: _DeferredFlags | None  # CUDA: bad-input flags read without a sync (None: checked at once)
+    generator: torch.Generator | None  # None: torch's default generator
 
 
-def _get(tensordict: TensorDictBase, key: NestedKey) -> torch.Tensor | None:
-    """``tensordict.get(key, None)`` for an unravelled key, without the public method's overhead."""
-    if type(key) is str:
-        return tensordict._get_str(key, None)
-    return tensordict._get_tuple(key, None)
+def _uniform(buffer: torch.Tensor, dtype: torch.dtype, generator: torch.Generator | None) -> torch.Tensor:
+    """Uniforms of the buffer's shape drawn into ``buffer`` (float32: the same draws whatever the options' dtype)."""
+    u = buffer.uniform_(generator=generator)
+    return u if u.dtype is dtype else u.to(dtype)
 
 
-def _set(tensordict: TensorDictBase, key: NestedKey, value: torch.Tensor) -> None:
-    """``tensordict.set(key, value)`` without validation, for values built with the env's batch shape."""
-    if type(tensordict) is TensorDict:
-        if type(key) is str:
-            tensordict._set_str(key, value, inplace=False, validated=True, ignore_lock=False, non_blocking=False)
-        else:
-            tensordict._set_tuple(key, value, inplace=False, validated=True, non_blocking=False)
-    else:
-        tensordict.set(key, value)
-
-
-def _cache_entries(tensors: list) -> list[tuple] | None:
-    """``(tensor, version, None)`` per input, or ``(tensor, None, copy)`` for an inference tensor (it has no
-    version counter, so its values are compared); ``None`` if an input is missing or not a tensor."""
-    entries = []
-    for x in tensors:
-        if not isinstance(x, torch.Tensor):
-            return None
-        try:
-            entries.append((x, x._version, None))
-        except RuntimeError:  # inference tensors do not track versions
-            entries.append((x, None, x.clone()))
-    return entries
+def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> torch.Tensor:
+    """``table[..., option]`` per env: ``[*batch, K]`` and ``[*batch]`` -> ``[*batch]``; option ``-1`` reads column
+    ``K - 1`` (a value then not used)."""
+    if len(consts.shape) == 1:
+        return table[consts.arange, option]
+    return table.reshape(consts.n, consts.K)[consts.arange, option.reshape(-1)].view(consts.shape)
 
 
 def _sibling_key(key: NestedKey, name: str) -> NestedKey:
@@ -611,24 +774,3 @@ def _sibling_key(key: NestedKey, name: str) -> NestedKey:
 
 def _reset_key(done_key: NestedKey) -> NestedKey:
     return _sibling_key(done_key, "_reset")
-
-
-class _SeedExecutors:
-    """Replaces ``env.set_seed`` on one env instance to also seed the ``OptionExecutor``\\ s it contains.
-
-    Each executor gets a seed derived from the env seed, its level and its position, so levels and sibling
-    executors draw independent streams. A module-level class (not a closure) so that envs stay picklable.
-    """
-
-    def __init__(self, env: EnvBase):
-        self.env = env
-
-    def __call__(self, seed: int | None = None, static_seed: bool = False) -> int | None:
-        if seed is not None:
-            transform = getattr(self.env, "transform", None)
-            executors: Sequence[OptionExecutor] = (
-                [m for m in transform.modules() if isinstance(m, OptionExecutor)] if transform is not None else []
-            )
-            for i, executor in enumerate(executors):
-                executor.set_seed(seed * 1_000_003 + 7_919 * executor.level + 104_729 * i)
-        return type(self.env).set_seed(self.env, seed, static_seed=static_seed)

@@ -1,0 +1,117 @@
+"""The Atari summary on synthetic results (no emulator): Student-t intervals paired by seed, verdicts worded "ahead" /
+"behind" / "no evidence either way" with their seed counts, and the aggregates over games with their plot."""
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+
+from torchrl_options.experiments import mean_interval, paired_difference_interval
+from torchrl_options.experiments.atari import (
+    AtariConfig,
+    atari_aggregates,
+    atari_comparison,
+    atari_scores,
+    atari_summary_markdown,
+)
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+GAMES = ["Atlantis", "Gopher", "Pooyan", "Seaquest", "SpaceInvaders"]
+P1, P3 = 3, 6
+#: per game, H1's gain over A: clearly ahead, clearly behind, and noise only
+GAIN = {"Atlantis": 2.0, "Gopher": -2.0, "Pooyan": 0.0, "Seaquest": 2.0, "SpaceInvaders": 0.0}
+
+
+def _rows(seeds=range(4), games=GAMES, noise=0.05):
+    rng = np.random.default_rng(0)
+    rows = []
+    for game in games:
+        for seed in seeds:
+            base = 10.0 * seed + 100.0 * GAMES.index(game)  # seeds and games differ widely; pairing removes it
+            for cond in ("A", "H1"):
+                gain = 0.0 if cond == "A" else GAIN[game] + (rng.normal(0, 1.0) if GAIN[game] == 0.0 else 0.0)
+                for ep in range(P1 + P3):
+                    r = base if ep < P1 else base + gain + rng.normal(0, noise)
+                    rows.append(dict(setting=game, condition=cond, seed=seed, episode=ep, frames=10 * (ep + 1),
+                                     **{"return": r}))
+    return rows
+
+
+def test_comparison_intervals_are_paired_t_intervals():
+    rows = _rows()
+    comps = {c.game: c for c in atari_comparison(rows, phase1_episodes=P1, final_window=3)}
+    assert list(comps) == GAMES and all(c.num_seeds == 4 for c in comps.values())
+    per = {cond: [np.mean([r["return"] for r in rows if r["setting"] == "Gopher" and r["condition"] == cond
+                           and r["seed"] == s and r["episode"] >= P1]) for s in range(4)] for cond in ("A", "H1")}
+    gopher = comps["Gopher"]
+    assert gopher.baseline_episodes == pytest.approx(mean_interval(per["A"]))
+    assert gopher.diff_episodes == pytest.approx(paired_difference_interval(per["H1"], per["A"]))
+    # the seeds' spread (10 per seed) would hide a gain of 2 unpaired; paired, it is clear
+    assert gopher.options_episodes[2] > gopher.baseline_episodes[1]
+    assert gopher.diff_episodes[2] < 0
+
+
+def test_summary_markdown_words_verdicts_with_seed_counts_and_method():
+    rows = _rows() + [r for r in _rows(seeds=[4, 5], games=["Atlantis"])]  # Atlantis has 6 seeds
+    comps = atari_comparison(rows, phase1_episodes=P1, final_window=3)
+    text = atari_summary_markdown(comps, final_window=3, header="## H1 vs A")
+    verdicts = {line.split(" | ")[0][2:]: line.split(" | ")[6] for line in text.splitlines()
+                if line.startswith("| ") and line.split(" | ")[0][2:] in GAMES}
+    assert verdicts["Atlantis"] == "ahead" and verdicts["Seaquest"] == "ahead" and verdicts["Gopher"] == "behind"
+    assert verdicts["Pooyan"] in ("no evidence either way", "ahead", "behind")
+    assert "verdict (equal episodes)" in text and "verdict (equal frames)" in text
+    assert "Student-t" in text and "n.s." not in text and "better" not in text
+    count = text.strip().splitlines()[-1]
+    assert "over 5 games, on 4-6 seeds per game" in count
+    n_ahead = list(verdicts.values()).count("ahead")
+    assert f"at equal episodes ahead in {n_ahead}, behind in {list(verdicts.values()).count('behind')}" in count
+    one = atari_summary_markdown([c for c in comps if c.game == "Gopher"], final_window=3)
+    assert "on 4 seeds per game" in one
+
+
+def test_one_seed_is_no_evidence():
+    comps = atari_comparison(_rows(seeds=[0]), phase1_episodes=P1, final_window=3)
+    assert all(c.diff_episodes[1] == -np.inf for c in comps)
+    text = atari_summary_markdown(comps, final_window=3)
+    assert "no evidence either way in 5" in text and "on 1 seed per game" in text
+
+
+def test_scores_and_aggregates_over_games():
+    rows = _rows() + _rows(seeds=[7], games=["Pooyan"])  # a seed not finished in every game: left out
+    games, scores = atari_scores(rows, phase1_episodes=P1)
+    assert games == sorted(GAMES) and scores["A"].shape == (4, 5)
+    assert scores["H1"][1, games.index("Gopher")] == pytest.approx(
+        np.mean([r["return"] for r in rows if r["setting"] == "Gopher" and r["condition"] == "H1"
+                 and r["seed"] == 1 and r["episode"] >= P1]))
+    agg = atari_aggregates(rows, phase1_episodes=P1, pairs=[("H1", "A"), ("H2", "A")], num_resamples=300)
+    assert list(agg.improvement) == [("H1", "A")]  # H2 did not run: its pair is left out
+    assert agg.tasks == sorted(GAMES) and agg.num_runs == {"A": 4, "H1": 4}
+    p, lo, hi = agg.improvement[("H1", "A")]
+    assert 0.0 <= lo <= p <= hi <= 1.0
+    assert atari_aggregates(rows, phase1_episodes=P1, pairs=[("H2", "A")]) is None
+
+
+def test_recipe_writes_aggregates_and_their_plot(tmp_path):
+    pytest.importorskip("matplotlib")
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments import ResultsLog
+
+    spec = importlib.util.spec_from_file_location("atari_ram_recipe", os.path.join(ROOT, "recipes", "atari_ram.py"))
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    log = ResultsLog(tmp_path / "results.csv")
+    cells = {}
+    for r in _rows():
+        cells.setdefault((r["setting"], r["condition"], r["seed"]), []).append(r)
+    for (game, cond, seed), rs in cells.items():
+        log.append_cell(game, cond, seed, [r["return"] for r in rs], [r["frames"] for r in rs])
+    cfg = OmegaConf.create({"preset_name": "synthetic", "final_window": 3, "smooth_window": 2})
+    config = AtariConfig(phase1_episodes=P1, phase3_episodes=P3)
+    recipe.write_outputs(log, str(tmp_path), cfg, config)
+    summary = (tmp_path / "summary.md").read_text()
+    assert "## Aggregates over games (Agarwal et al. 2021)" in summary
+    assert "interquartile mean" in summary and "| H1 vs A |" in summary and "aggregates.png" in summary
+    assert summary.index("## Aggregates") < summary.index("## H1 vs A")  # the aggregates first, per game after
+    for png in ("aggregates.png", "curves.png"):
+        assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
