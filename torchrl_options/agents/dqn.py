@@ -185,8 +185,16 @@ def _generators(env: EnvBase) -> dict[str, torch.Generator]:
     if isinstance(env, TransformedEnv):
         parts = [("env", env.base_env)] + [(f"transform{i}", t) for i, t in enumerate(env.transform.modules())]
     for name, obj in parts:
+        # a public ``generator`` property (the option executor's private stream, ``None`` when it draws from torch's
+        # default generator), else a generator attribute; no plain getattr: envs and transforms forward unknown
+        # attributes
+        if isinstance(getattr(type(obj), "generator", None), property):
+            g = obj.generator
+            if isinstance(g, torch.Generator):
+                found[f"{name}.generator"] = g
+            continue
         for attr in ("generator", "_generator", "rng", "_rng"):
-            g = vars(obj).get(attr)  # no getattr: envs and transforms forward unknown attributes
+            g = vars(obj).get(attr)
             if isinstance(g, torch.Generator):
                 found[f"{name}.{attr}"] = g
                 break
