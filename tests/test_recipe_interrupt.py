@@ -45,11 +45,15 @@ CASES = [
     pytest.param("serial", signal.SIGINT, "group", marks=pytest.mark.slow),  # Ctrl-C in a terminal
     pytest.param("local", signal.SIGINT, "group", marks=pytest.mark.slow),
     pytest.param("local", signal.SIGTERM, "driver", marks=pytest.mark.slow),  # `kill PID`: forwarded to the workers
+    pytest.param("ray", signal.SIGINT, "group", marks=pytest.mark.slow),
+    pytest.param("ray", signal.SIGTERM, "driver", marks=pytest.mark.slow),  # Ray's own handler would abort
 ]
 
 
 @pytest.mark.parametrize("backend, sig, target", CASES)
 def test_interrupt_prints_one_line_and_resumes(tmp_path, backend, sig, target):
+    if backend == "ray":
+        pytest.importorskip("ray")
     out = tmp_path / "run"
     checkpoint = out / "cells" / "supervised-A-seed0" / "dqn.pt"
     run = _Run(out, f"backend={backend}", "num_workers=1")
@@ -62,7 +66,7 @@ def test_interrupt_prints_one_line_and_resumes(tmp_path, backend, sig, target):
     assert last.startswith(f"interrupted: 0 finished cells saved in {out}/results.csv") and last.endswith(
         "run the same command again to resume."
     ), text
-    if backend == "local":
+    if backend != "serial":
         return
     # the same command again resumes the cell from its checkpoint, and says so
     run = _Run(out, f"backend={backend}", "num_workers=1")

@@ -12,6 +12,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -155,7 +156,11 @@ def run_sweep(
             raise ImportError("backend='ray' needs Ray: pip install 'torchrl-options[ray]'.") from err
         started = False
         if not ray.is_initialized():
+            main_thread = threading.current_thread() is threading.main_thread()
+            previous = signal.getsignal(signal.SIGTERM) if main_thread else None
             ray.init(address=ray_address, num_cpus=num_workers if ray_address is None else None, log_to_driver=False)
+            if previous is not None:  # Ray's driver handler aborts with a stack dump: keep the caller's (the recipes'
+                signal.signal(signal.SIGTERM, previous)  # turns SIGTERM into a clean interruption)
             started = True
         try:
             remote = ray.remote(_run_one)
