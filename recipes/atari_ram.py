@@ -39,6 +39,8 @@ from torchrl_options.experiments import (
     summarize,
     summary_markdown,
 )
+from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments.validation import check_atari_recipe_settings
 from torchrl_options.experiments.atari import (
     AtariConfig,
     atari_aggregates,
@@ -58,6 +60,7 @@ def run(cfg: DictConfig) -> list:
     """Runs the sweep described by ``cfg`` (the composed Hydra config), writes its outputs, returns the cells that ran
     (finished cells found in ``results.csv`` are skipped; an ``out_dir`` made with other ``atari`` settings is
     refused unless ``allow_changed_settings``)."""
+    check_atari_recipe_settings(OmegaConf.to_container(cfg, resolve=True))  # every setting, before any work
     config = AtariConfig.from_dict(OmegaConf.to_container(cfg.atari, resolve=True))
     out_dir = os.path.abspath(cfg.out_dir)
     # finished cells are skipped and phase-1 checkpoints reused: only with the settings they were made with
@@ -135,7 +138,8 @@ def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: At
 @hydra.main(version_base="1.3", config_path="config", config_name="atari_ram")
 def main(cfg: DictConfig) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    run(cfg)
+    with recipe_guard(cfg.out_dir, checkpoints="<game>/seed<s>"):  # one line for a bad setting or an interruption
+        run(cfg)
 
 
 if __name__ == "__main__":

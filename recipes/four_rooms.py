@@ -11,6 +11,7 @@ summary table.
 import hydra
 
 from torchrl_options.experiments.gridworld import run_gridworld_script
+from torchrl_options.experiments.recipe_runner import recipe_guard
 
 
 def run(cfg, quiet: bool = False) -> str | None:
@@ -23,7 +24,8 @@ def run(cfg, quiet: bool = False) -> str | None:
 
 @hydra.main(config_path="config", config_name="four_rooms", version_base="1.3")
 def main(cfg) -> None:
-    run(cfg, quiet=True)
+    with recipe_guard(cfg.out_dir):  # one line for a bad setting or an interruption, no traceback
+        run(cfg, quiet=True)
 
 
 if __name__ == "__main__":

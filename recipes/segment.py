@@ -34,6 +34,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options import discover_options, save_options
 from torchrl_options.envs import available_maps
+from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments.validation import check_segment_settings
 from torchrl_options.segmentation import (
     boundary_metrics,
     gridworld_subgoal_demonstrations,
@@ -71,6 +73,7 @@ def _fmt(x: float) -> str:
 
 def run(cfg: DictConfig) -> dict:
     """Runs the recipe; returns the metrics dict (also written to ``metrics.json``)."""
+    check_segment_settings(OmegaConf.to_container(cfg, resolve=True))  # every setting, before any work
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = load_data(cfg)
@@ -141,7 +144,8 @@ def run(cfg: DictConfig) -> dict:
 def main(cfg: DictConfig) -> None:
     logger.info("config:\n%s", OmegaConf.to_yaml(cfg))
     torch.manual_seed(cfg.discovery.seed)
-    run(cfg)
+    with recipe_guard(cfg.output_dir, checkpoints="(no checkpoints: this recipe reruns whole)"):
+        run(cfg)
 
 
 if __name__ == "__main__":

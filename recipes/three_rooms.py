@@ -7,6 +7,7 @@ DQN with the augmented action space (H1u) against DQN continuing with actions on
 import hydra
 
 from torchrl_options.experiments.gridworld import run_gridworld_script
+from torchrl_options.experiments.recipe_runner import recipe_guard
 
 
 def run(cfg, quiet: bool = False) -> str | None:
@@ -19,7 +20,8 @@ def run(cfg, quiet: bool = False) -> str | None:
 
 @hydra.main(config_path="config", config_name="three_rooms", version_base="1.3")
 def main(cfg) -> None:
-    run(cfg, quiet=True)
+    with recipe_guard(cfg.out_dir):  # one line for a bad setting or an interruption, no traceback
+        run(cfg, quiet=True)
 
 
 if __name__ == "__main__":

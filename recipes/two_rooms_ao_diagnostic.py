@@ -20,6 +20,8 @@ from omegaconf import OmegaConf
 
 from torchrl_options.experiments import Cell
 from torchrl_options.experiments.gridworld import cell_options, make_agent
+from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments.validation import check_gridworld_settings, SettingError
 
 
 def main(argv=None) -> list[tuple[int, float, float, float, float]]:
@@ -34,6 +36,11 @@ def main(argv=None) -> list[tuple[int, float, float, float, float]]:
     with initialize_config_dir(config_dir, version_base="1.3"):
         cfg = compose("two_rooms", overrides=["out_dir=outputs/two_rooms_ao_diagnostic", "progress=false"] + args.overrides)
     cfg = OmegaConf.to_container(cfg, resolve=True)
+    for name in ("seed", "episodes", "every"):
+        minimum = 0 if name == "seed" else 1
+        if getattr(args, name) < minimum:
+            raise SettingError(f"--{name} must be an int >= {minimum}, got {getattr(args, name)}.")
+    check_gridworld_settings(cfg)  # the recipe settings, before any work
     options = cell_options(cfg, Cell("supervised", "AO", args.seed))
     K = int(cfg["discovery"]["num_options"])
     agent = make_agent(cfg, "both", args.seed, options, K)
@@ -63,4 +70,5 @@ def main(argv=None) -> list[tuple[int, float, float, float, float]]:
 
 
 if __name__ == "__main__":
-    main()
+    with recipe_guard("outputs/two_rooms_ao_diagnostic", checkpoints="cells (options only: the DQN reruns)"):
+        main()

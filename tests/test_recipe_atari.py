@@ -116,11 +116,14 @@ def test_smoke_end_to_end_and_resume(tmp_path):
     # ... but not with other settings: its finished cells and phase-1 checkpoint were made with the old ones
     out = f"out_dir={tmp_path}"
     longer = ["atari.phase1_episodes=5", "atari.phase3_episodes=4"]
+    # checkpoint_every sets where training restarts its episodes (a checkpoint ends a chunk): a cell setting
+    with pytest.raises(ValueError, match=r"atari.checkpoint_every: 2 there, 7 now"):
+        recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, "atari.checkpoint_every=7"]))
     with pytest.raises(ValueError, match=r"atari.phase1_episodes: 3 there, 5 now.*atari.phase3_episodes: 3 there, 4 now"):
         recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *longer]))
     assert _rows(tmp_path / "results.csv") == rows
     # settings of how cells run (checkpoints, greedy evaluation, device) may change; so may seeds and conditions
-    same = ["atari.checkpoint_every=7", "atari.eval_every=2", "atari.fused_adam=true", "atari.torch_threads=1"]
+    same = ["atari.eval_every=2", "atari.fused_adam=true", "atari.torch_threads=1"]
     assert recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *same])) == []
     # allow_changed_settings mixes them knowingly, and records the new settings
     mixed = ["atari.lr=0.01", "allow_changed_settings=true"]

@@ -99,6 +99,10 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as err:
         text = str(err)
+        if not zipfile.is_zipfile(path):
+            raise CheckpointFileError(
+                f"{os.fspath(path)}: not a readable {what} file (corrupt, or not written by torch.save)."
+            ) from None
         if "weights_only" in text or "Weights only" in text or "Unsupported global" in text:
             found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
             name = f"it needs {found.group(1)}" if found else "not plain data"

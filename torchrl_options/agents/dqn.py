@@ -125,6 +125,37 @@ class OptionsDQNConfig:
     seed: int = 0
     device: str = "cpu"
 
+    def __post_init__(self) -> None:
+        """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
+        from torchrl_options.discovery._validation import check_int
+
+        choices = {"mode": ("actions", "options", "both"), "discount_per": ("step", "decision"),
+                   "target_update": ("hard", "soft"), "loss_function": ("l2", "l1", "smooth_l1")}  # fmt: skip
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}.")
+        for name, minimum in (("num_envs", 1), ("total_frames", 0), ("frames_per_batch", 1), ("buffer_size", 1),
+                              ("batch_size", 1), ("learning_starts", 0), ("updates_per_batch", 0),
+                              ("eps_annealing_frames", 1), ("hard_update_interval", 1), ("seed", 0)):  # fmt: skip
+            check_int(getattr(self, name), name, minimum=minimum)
+        check_int(self.max_decisions, "max_decisions", minimum=1, allow_none=True)
+        for name, lo, hi, lo_open, hi_open in (("lr", 0, math.inf, True, True), ("gamma", 0, 1, False, False),
+                                               ("eps_init", 0, 1, False, False), ("eps_end", 0, 1, False, False),
+                                               ("soft_update_eps", 0, 1, True, True)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__}).")
+            if not (lo < value if lo_open else lo <= value) or not (value < hi if hi_open else value <= hi) or math.isnan(value):
+                interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+                raise ValueError(f"{name} must be in {interval}, got {value}.")
+        if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
+            raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
+        sizes = self.hidden_sizes
+        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
+            isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+        ):
+            raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
+
 
 @dataclass
 class TrainingLog:
@@ -163,8 +194,16 @@ def _generators(env: EnvBase) -> dict[str, torch.Generator]:
     if isinstance(env, TransformedEnv):
         parts = [("env", env.base_env)] + [(f"transform{i}", t) for i, t in enumerate(env.transform.modules())]
     for name, obj in parts:
+        # a public ``generator`` property (the option executor's private stream, ``None`` when it draws from torch's
+        # default generator), else a generator attribute; no plain getattr: envs and transforms forward unknown
+        # attributes
+        if isinstance(getattr(type(obj), "generator", None), property):
+            g = obj.generator
+            if isinstance(g, torch.Generator):
+                found[f"{name}.generator"] = g
+            continue
         for attr in ("generator", "_generator", "rng", "_rng"):
-            g = vars(obj).get(attr)  # no getattr: envs and transforms forward unknown attributes
+            g = vars(obj).get(attr)
             if isinstance(g, torch.Generator):
                 found[f"{name}.{attr}"] = g
                 break
@@ -226,10 +265,20 @@ class OptionsDQN:
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
     ):
         self.config = config = config or OptionsDQNConfig()
+        if not isinstance(config, OptionsDQNConfig):
+            raise TypeError(f"config must be an OptionsDQNConfig, got {type(config).__name__}.")
         if config.mode not in ("actions", "options", "both"):
             raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
         if config.mode != "actions" and (options is None or num_options is None):
             raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+        if not callable(env_factory):
+            raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
+        if num_options is not None:
+            from torchrl_options.discovery._validation import check_int
+
+            check_int(num_options, "num_options", minimum=1)
+        if options is not None and not isinstance(options, TensorDictModuleBase):
+            raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
         torch.manual_seed(config.seed)
         self._executor_level = 0
         self.env_factory = env_factory
@@ -518,7 +567,7 @@ class OptionsDQN:
             raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
         try:
             self.loss_module.load_state_dict(state["loss_module"])
-        except RuntimeError as err:
+        except (RuntimeError, ValueError, KeyError) as err:
             raise ValueError(
                 "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
                 f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."

@@ -163,7 +163,7 @@ def check_step_data(
 def check_options_module(
     options: TensorDictModuleBase,
     data: TensorDictBase,
-    num_options: int,
+    num_options: int | None,
     *,
     num_actions: int | None = None,
     action_space: str = "categorical",
@@ -187,7 +187,7 @@ def check_options_module(
     term = out.get("termination_logits", None)
     if term is None:
         raise ValueError(f"the {name} module must write 'termination_logits' [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
-    if int(term.shape[-1]) != num_options:
+    if num_options is not None and int(term.shape[-1]) != num_options:
         raise ValueError(f"num_options={num_options} but the {name} module has K={int(term.shape[-1])} options.")
     logits = out.get("option_logits", None)
     if action_space == "categorical" and logits is not None and num_actions is not None and logits.shape[-1] != num_actions:

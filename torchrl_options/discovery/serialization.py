@@ -67,7 +67,7 @@ def module_from_dict(entry: dict, source: str = "the file") -> TensorDictModuleB
         raise ValueError(f"{source}: the stored {cls.__name__} configuration does not build one: {err}") from None
     try:
         module.load_state_dict(entry["state_dict"])
-    except RuntimeError as err:
+    except (RuntimeError, ValueError, KeyError) as err:
         detail = " ".join(str(err).split())[:300]
         raise ValueError(
             f"{source}: the stored {cls.__name__} weights disagree with its stored configuration {config}: {detail}"

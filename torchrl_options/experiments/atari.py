@@ -198,10 +198,44 @@ class AtariConfig:
     option_frames_max_steps: int = 400
     torch_threads: int | None = None
 
+    #: (minimum, allowed None) of every int setting, and [low, high] of every number: checked when the settings
+    #: are read, before any work starts
+    _INTS: ClassVar[dict[str, tuple[int, bool]]] = {
+        "frame_skip": (1, False), "noop_max": (0, False), "max_episode_steps": (1, True), "phase1_episodes": (1, False),
+        "phase3_episodes": (1, False), "num_demonstrations": (1, False), "demo_max_steps": (1, False),
+        "num_options": (1, True), "ddo_iterations": (0, False), "ddo_batch_size": (1, True), "batch_size": (1, False),
+        "buffer_size": (1, False), "learning_starts": (0, False), "frames_per_batch": (1, False),
+        "updates_per_batch": (0, False), "hard_update_interval": (1, False), "num_envs": (1, False),
+        "eval_every": (0, False), "eval_episodes": (1, False), "checkpoint_every": (0, False),
+        "option_frames_max_steps": (1, False), "torch_threads": (1, True), "eps_annealing_frames": (0, False),
+    }  # fmt: skip
+    _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {
+        "repeat_action_probability": (0.0, 1.0), "gamma": (0.0, 1.0), "eps_init": (0.0, 1.0), "eps_end": (0.0, 1.0),
+    }  # fmt: skip
+
     def __post_init__(self) -> None:
+        from torchrl_options.discovery._validation import check_int
         from torchrl_options.discovery.discover import _check_m_steps
 
         _check_m_steps(self.ddo_m_steps, name="ddo_m_steps")  # refused when the settings are read, not after phase 1
+        for name, (minimum, allow_none) in self._INTS.items():
+            check_int(getattr(self, name), name, minimum=minimum, allow_none=allow_none)
+        for name, (lo, hi) in self._NUMBERS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+                raise ValueError(f"{name} must be a number in [{lo}, {hi}], got {value!r}.")
+        for name in ("lr", "ddo_lr"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+                raise ValueError(f"{name} must be a number > 0, got {value!r}.")
+        if self.ram_encoding not in ("one_hot", "bytes"):
+            raise ValueError(f"ram_encoding must be 'one_hot' or 'bytes', got {self.ram_encoding!r}.")
+        for name in ("hidden_sizes", "options_num_cells"):
+            sizes = getattr(self, name)
+            if not isinstance(sizes, (tuple, list)) or not sizes or not all(
+                isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+            ):
+                raise ValueError(f"{name} must be a non-empty list of ints >= 1, got {sizes!r}.")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
@@ -215,10 +249,11 @@ class AtariConfig:
                 d[key] = tuple(d[key])
         return cls(**d)
 
-    #: fields that change how a cell runs (device, threads, checkpoints, pictures, greedy evaluation, which leaves
-    #: training's random numbers untouched, fused Adam, the same algorithm), not the episodes it records
+    #: fields that change how a cell runs (device, threads, pictures, greedy evaluation, which leaves training's
+    #: random numbers untouched, fused Adam, the same algorithm), not the episodes it records. ``checkpoint_every``
+    #: is not one of them: training restarts its episodes at each checkpoint (what makes resuming exact)
     RUN_ONLY_FIELDS: ClassVar[tuple[str, ...]] = (
-        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_every", "checkpoint_buffer", "eval_every",
+        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_buffer", "eval_every",
         "eval_episodes", "option_frames", "option_frames_max_steps",
     )  # fmt: skip
 

@@ -38,6 +38,7 @@ from torchrl_options.checkpoints import load_file, save_file, tensordict_from_pl
 from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.run_settings import check_run_settings
+from torchrl_options.experiments.validation import check_gridworld_settings
 from torchrl_options.experiments.sweep import Cell, CellResult
 from torchrl_options.hierarchy import discover_hierarchy, load_hierarchy, OptionHierarchy, save_hierarchy
 
@@ -56,6 +57,8 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+#: what a resumed run skips and where it resumes: kept on the console when the recipes quiet the rest
+resume_logger = logging.getLogger("torchrl_options.resume")
 
 
 def _env_kwargs(env_cfg: Mapping[str, Any]) -> dict[str, Any]:
@@ -277,7 +280,7 @@ def train_episodes(
     checkpoint = None if checkpoint is None else Path(checkpoint)
     if checkpoint is not None and checkpoint.exists():
         agent.load_state_dict(load_file(checkpoint, what="DQN checkpoint", map_location=agent.device))
-        logger.info("%s: resumed from %s at %d episodes", desc, checkpoint, len(agent.log.episode_returns))
+        resume_logger.info("%s: resuming from %s at episode %d of %d", desc, checkpoint, len(agent.log.episode_returns), num_episodes)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -447,10 +450,11 @@ def reach_table(log, target: float, window: int) -> str:
 
 
 #: Recipe keys that choose which cells run, how they run or how the summary reads: a run may be resumed with
-#: other values of these; every other key defines the cells (:func:`check_run_settings`).
+#: other values of these; every other key defines the cells (:func:`check_run_settings`). ``checkpoint_every``
+#: defines them too: each checkpoint ends a chunk of training, whose episodes restart.
 RUN_ONLY_SETTINGS = (
     "out_dir", "seeds", "settings_to_run", "conditions_to_run", "backend", "num_workers", "ray_address",
-    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "checkpoint_every", "scale",
+    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "scale",
     "allow_changed_settings",
 )  # fmt: skip
 
@@ -470,6 +474,7 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
     from torchrl_options.experiments.sweep import run_sweep
 
     cfg = dict(cfg)
+    check_gridworld_settings(cfg)  # every setting, before any work starts
     out = Path(cfg["out_dir"])
     check_run_settings(out, cfg, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(cfg.get("allow_changed_settings", False)))
     log = ResultsLog(out / "results.csv")
@@ -477,6 +482,9 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
     cells = [Cell(s, c, seed) for s in cfg["settings_to_run"] for c in cfg["conditions_to_run"] for seed in seeds]
     done = log.done_cells()
     todo = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
+    skipped = [c.name for c in cells if (c.setting, c.condition, c.seed) in done]
+    if skipped:
+        resume_logger.info("resuming %s: %d finished cells skipped (%s)", out, len(skipped), ", ".join(skipped))
     stop = cfg.get("stop_after_cells")
     stopped = stop is not None and len(todo) > int(stop)
     if stopped:
@@ -602,5 +610,6 @@ def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | 
     if quiet and not cfg.get("verbose", False):
         for name in ("torchrl", "torchrl_options"):
             logging.getLogger(name).setLevel(logging.WARNING)
+        resume_logger.setLevel(logging.INFO)
     torch.set_num_threads(1)
     return run_gridworld_recipe(cfg, title)

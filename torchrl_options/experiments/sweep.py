@@ -10,6 +10,9 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import multiprocessing
+import os
+import signal
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,12 +46,44 @@ class CellResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+_IN_CELL = False  # in a pool worker: whether a cell is running (Ctrl-C stops a cell, never an idle worker)
+
+
+def _worker_sigint(signum, frame) -> None:
+    if _IN_CELL:
+        raise KeyboardInterrupt
+
+
+def _init_worker() -> None:
+    """Pool workers: SIGINT (Ctrl-C reaches the whole process group, and the driver forwards SIGTERM as SIGINT)
+    stops the running cell (its last checkpoint stays) and is ignored between cells, so that no worker prints a
+    traceback; the driver reports the interruption once."""
+    signal.signal(signal.SIGINT, _worker_sigint)
+
+
 def _run_one(fn: Callable[[Cell], CellResult], cell: Cell, threads: int | None) -> tuple[Cell, CellResult]:
+    global _IN_CELL
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    return cell, fn(cell)
+    _IN_CELL = True
+    try:
+        return cell, fn(cell)
+    finally:
+        _IN_CELL = False
+
+
+def _stop_workers(pool: cf.ProcessPoolExecutor) -> None:
+    """After an interrupt in the driver: cancel the cells not started, interrupt the running ones, wait for the
+    workers to exit (no orphans, no leaked semaphores)."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for child in multiprocessing.active_children():
+        try:
+            os.kill(child.pid, signal.SIGINT)
+        except (ProcessLookupError, TypeError):
+            pass
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def run_sweep(
@@ -105,10 +140,15 @@ def run_sweep(
             record(cell, fn(cell))
     elif backend == "local":
         ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=num_workers, mp_context=ctx) as pool:
+        pool = cf.ProcessPoolExecutor(max_workers=num_workers, mp_context=ctx, initializer=_init_worker)
+        try:
             futures = [pool.submit(_run_one, fn, cell, threads_per_worker) for cell in todo]
             for future in cf.as_completed(futures):
                 record(*future.result())
+        except BaseException:
+            _stop_workers(pool)
+            raise
+        pool.shutdown(wait=True)
     elif backend == "ray":
         try:
             import ray
@@ -116,7 +156,11 @@ def run_sweep(
             raise ImportError("backend='ray' needs Ray: pip install 'torchrl-options[ray]'.") from err
         started = False
         if not ray.is_initialized():
+            main_thread = threading.current_thread() is threading.main_thread()
+            previous = signal.getsignal(signal.SIGTERM) if main_thread else None
             ray.init(address=ray_address, num_cpus=num_workers if ray_address is None else None, log_to_driver=False)
+            if previous is not None:  # Ray's driver handler aborts with a stack dump: keep the caller's (the recipes'
+                signal.signal(signal.SIGTERM, previous)  # turns SIGTERM into a clean interruption)
             started = True
         try:
             remote = ray.remote(_run_one)

@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.discovery._validation import check_step_data
 from torchrl_options.discovery.tabulated import expected_counts, tabulate_states
 from torchrl_options.discovery.discover import (
     DEFAULT_RESTARTS,
@@ -183,6 +184,7 @@ def discover_hierarchy(
         generator.manual_seed(seed)
 
     data = as_trajectory_batch(trajectories)
+    check_step_data(data, obs_keys=obs_keys, action_key=action_key, num_actions=num_actions)
     if device is None:
         device = data.device if data.device is not None else torch.device("cpu")
     device = torch.device(device)

@@ -424,6 +424,13 @@ def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: 
         >>> bool((back["true_switch"] == data["true_switch"]).all()), back.batch_size == data.batch_size
         (True, True)
     """
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"save_trajectories: data must be a [B, T] TensorDict, got {type(data).__name__}.")
+    if data.ndim != 2:
+        raise ValueError(f"save_trajectories: data must be a [B, T] TensorDict, got batch_size {list(data.batch_size)}.")
+    missing = [k for k in ("observation", "action", ("next", "observation")) if k not in data.keys(include_nested=True)]
+    if missing:
+        raise ValueError(f"save_trajectories: data lacks {missing} (it needs observation, action, ('next', 'observation')).")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".h5", ".hdf5", ".pt", ".pth"):

@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from torchrl_options.discovery._validation import check_int, check_options_module, check_step_data
 from torchrl_options.discovery import as_trajectory_batch, DiscoveryResult
 from torchrl_options.inference import forward_backward, most_likely_options, viterbi
 from torchrl_options.objectives import DDOLoss
@@ -158,10 +159,17 @@ def segment(
         raise ValueError(f"method must be 'viterbi' or 'posterior', got {method!r}.")
     if boundary not in ("change", "switch"):
         raise ValueError(f"boundary must be 'change' or 'switch', got {boundary!r}.")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 <= threshold <= 1.0:
+        raise ValueError(f"threshold must be a probability in [0, 1], got {threshold!r}.")
+    check_int(batch_size, "batch_size", minimum=1, allow_none=True)
     if isinstance(options, DiscoveryResult):
         meta_control = options.meta_control if meta_control is None else meta_control
         options = options.options
+    if meta_control is not None and not isinstance(meta_control, TensorDictModuleBase):
+        raise TypeError(f"meta_control must be None or a TensorDictModuleBase, got {type(meta_control).__name__}.")
     data = as_trajectory_batch(trajectories, mask_key=mask_key)
+    check_step_data(data, obs_keys=[], action_key=action_key, action_space=action_space, mask_key=mask_key, terminal_key=terminal_key)  # fmt: skip
+    check_options_module(options, data, None, action_space=action_space)
     loss = DDOLoss(options, meta_control, action_space=action_space)
     loss.set_keys(action=action_key, mask=mask_key, terminal=terminal_key)
     loss.loss_mask_key = None  # the valid steps are mask_key's alone

@@ -1,0 +1,84 @@
+"""How a recipe script ends: bad settings as one line, Ctrl-C (SIGINT) and SIGTERM as one line naming what was
+saved and how to resume, never a traceback.
+
+A recipe saves as it goes: each finished cell is appended to ``<out_dir>/results.csv`` and each running cell
+checkpoints under ``<out_dir>/`` (every ``checkpoint_every`` episodes); running the same command again skips the
+finished cells and resumes the others from their last checkpoint, bit for bit.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+__all__ = ["recipe_guard"]
+
+logger = logging.getLogger(__name__)
+
+#: set to 1 to see the traceback of a refused setting instead of the one-line message
+TRACEBACK_ENV = "TORCHRL_OPTIONS_TRACEBACK"
+
+
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def _finished_cells(out_dir: str | os.PathLike) -> int:
+    path = Path(out_dir, "results.csv")
+    if not path.exists():
+        return 0
+    from torchrl_options.experiments.results import ResultsLog
+
+    try:
+        return len(ResultsLog(path).done_cells())
+    except Exception:  # the count is a courtesy: never mask the interruption
+        return 0
+
+
+@contextlib.contextmanager
+def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") -> Iterator[None]:
+    """Wraps a recipe's work: SIGTERM becomes an interruption like Ctrl-C; an interruption exits with status 130
+    and one line (``interrupted: N finished cells in <out_dir>/results.csv, ...; run the same command again to
+    resume.``); a refused setting (``ValueError``/``TypeError``) exits with status 2 and one line ``error: ...``.
+
+    Args:
+        out_dir: the recipe's output folder (named in the message).
+        checkpoints (str): where under ``out_dir`` the running cells' checkpoints are.
+
+    Examples:
+        >>> with recipe_guard("outputs/demo"):
+        ...     pass
+        >>> try:
+        ...     with recipe_guard("outputs/demo"):
+        ...         raise ValueError("episodes must be an int >= 1, got -5.")
+        ... except SystemExit as stop:
+        ...     print(stop.code)
+        2
+    """
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    except KeyboardInterrupt:
+        where = os.fspath(out_dir) if out_dir is not None else "the output folder"
+        n = _finished_cells(out_dir) if out_dir is not None else 0
+        print(
+            f"interrupted: {n} finished cell{'s' if n != 1 else ''} saved in {where}/results.csv and the running "
+            f"cells' last checkpoints under {where}/{checkpoints}; run the same command again to resume.",
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None
+    except (ValueError, TypeError) as err:
+        if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
