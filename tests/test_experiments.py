@@ -201,10 +201,16 @@ def test_sweep_bad_backend(tmp_path):
 @pytest.mark.parametrize(
     "folder, expected",
     [
-        ("four_rooms_default", {"A": "0.283 [0.147, 0.420]", "H1u - A": "+0.180 [+0.072, +0.288] | ahead",
-                                "H1s - A": "+0.167 [-0.045, +0.378] | no evidence either way"}),
-        ("four_rooms_dqn64", {"A": "0.340 [0.146, 0.534]", "H1u - A": "+0.067 [-0.271, +0.404] | no evidence"}),
-        ("four_rooms_default_1000", {"H2u": "0.830 [0.679, 0.981]", "H2u - A": "+0.427 [+0.302, +0.552] | ahead"}),
+        ("intervals_old_vs_new/four_rooms_default", {"A": "0.283 [0.147, 0.420]",
+                                                     "H1u - A": "+0.180 [+0.072, +0.288] | ahead",
+                                                     "H1s - A": "+0.167 [-0.045, +0.378] | no evidence either way"}),
+        ("intervals_old_vs_new/four_rooms_dqn64", {"A": "0.340 [0.146, 0.534]",
+                                                   "H1u - A": "+0.067 [-0.271, +0.404] | no evidence"}),
+        ("intervals_old_vs_new/four_rooms_default_1000", {"H2u": "0.830 [0.679, 0.981]",
+                                                          "H2u - A": "+0.427 [+0.302, +0.552] | ahead"}),
+        ("four_rooms_default", {"A": "0.260 [0.097, 0.423]", "H1u - A": "+0.170 [-0.033, +0.373] | no evidence",
+                                "H1s - A": "+0.150 [+0.019, +0.281] | ahead"}),
+        ("four_rooms_dqn64", {"A": "0.350 [0.284, 0.416]", "H1u - A": "+0.090 [-0.211, +0.391] | no evidence"}),
     ],
 )
 def test_kept_results_back_the_readme(tmp_path, folder, expected):
@@ -215,7 +221,7 @@ def test_kept_results_back_the_readme(tmp_path, folder, expected):
     from torchrl_options.experiments.gridworld import write_summary
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    with gzip.open(os.path.join(root, "results", folder, "results.csv.gz"), "rt") as f:
+    with gzip.open(os.path.join(root, "results", *folder.split("/"), "results.csv.gz"), "rt") as f:
         (tmp_path / "results.csv").write_text(f.read())
     text = write_summary(tmp_path / "results.csv", tmp_path / "out", "kept", {"final_window": 100, "smooth_window": 50})
     for name, figure in expected.items():
