@@ -11,15 +11,9 @@ import torch
 from torchrl_options.checkpoints import load_file
 from torchrl_options.envs.atari import ATARI_GAMES, atari_available
 from torchrl_options.experiments import ResultsLog
-from torchrl_options.experiments.atari import (
-    AtariConfig,
-    _close,
-    _make_agent,
-    _num_actions,
-    _train_episodes,
-    atari_comparison,
-    option_usage,
-)
+from torchrl_options.experiments.atari import AtariConfig, atari_comparison, option_usage
+from torchrl_options.experiments.atari.pipeline import _train_episodes
+from torchrl_options.experiments.atari.utils import _close, _make_agent, _num_actions
 
 pytestmark = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
 
@@ -363,7 +357,7 @@ def test_greedy_evaluation(tmp_path):
 
 def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
     import torchrl_options.discovery as discovery
-    from torchrl_options.experiments.atari import _phase2
+    from torchrl_options.experiments.atari.pipeline import _phase2
 
     seen = []
     real = discovery.discover_options

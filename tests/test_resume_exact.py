@@ -102,12 +102,12 @@ def _atari_run(out_dir, condition):
 def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase):
     """Interrupted right after the first checkpoint inside phase 1 (A) or phase 3 (H1: options, executor)."""
     pytest.importorskip("ale_py")
-    import torchrl_options.experiments.atari as atari
+    import torchrl_options.experiments.atari.pipeline as pipeline
 
     whole = _atari_run(tmp_path / "whole", condition)
     returns = [line.split(b",")[4] for line in whole.splitlines()[1:]]
     assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
-    real_save, saves = atari._atomic_save, []
+    real_save, saves = pipeline._atomic_save, []
 
     def save_then_interrupt(obj, path):
         real_save(obj, path)
@@ -115,10 +115,10 @@ def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase)
             saves.append(path)
             raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint inside the phase
 
-    monkeypatch.setattr(atari, "_atomic_save", save_then_interrupt)
+    monkeypatch.setattr(pipeline, "_atomic_save", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         _atari_run(tmp_path / "cut", condition)
     assert saves
-    monkeypatch.setattr(atari, "_atomic_save", real_save)
+    monkeypatch.setattr(pipeline, "_atomic_save", real_save)
     torch.manual_seed(4321)
     assert _atari_run(tmp_path / "cut", condition) == whole
