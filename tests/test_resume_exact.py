@@ -51,7 +51,7 @@ def test_gridworld_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition):
     assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
 
     saves = []
-    real_save = gridworld._atomic_save
+    real_save = gridworld.save_file
 
     def save_then_interrupt(obj, path):
         real_save(obj, path)
@@ -61,13 +61,13 @@ def test_gridworld_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition):
                 raise KeyboardInterrupt
 
     cfg = _cfg(tmp_path / "cut", f"conditions_to_run=[{condition}]")
-    monkeypatch.setattr(gridworld, "_atomic_save", save_then_interrupt)
+    monkeypatch.setattr(gridworld, "save_file", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         _run(cfg)
     assert not (tmp_path / "cut" / "results.csv").exists() or b"supervised" not in (tmp_path / "cut" / "results.csv").read_bytes()
     ckpt = tmp_path / "cut" / "cells" / f"supervised-{condition}-seed0" / "dqn.pt"
     assert 16 <= len(load_file(ckpt)["log"]["episode_returns"]) < 48  # interrupted mid-cell
-    monkeypatch.setattr(gridworld, "_atomic_save", real_save)
+    monkeypatch.setattr(gridworld, "save_file", real_save)
     torch.manual_seed(1234)  # the resumed process's global random state is whatever it is
     resumed = _run(cfg)
     assert resumed == whole
@@ -107,7 +107,7 @@ def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase)
     whole = _atari_run(tmp_path / "whole", condition)
     returns = [line.split(b",")[4] for line in whole.splitlines()[1:]]
     assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
-    real_save, saves = pipeline._atomic_save, []
+    real_save, saves = pipeline.save_file, []
 
     def save_then_interrupt(obj, path):
         real_save(obj, path)
@@ -115,10 +115,10 @@ def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase)
             saves.append(path)
             raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint inside the phase
 
-    monkeypatch.setattr(pipeline, "_atomic_save", save_then_interrupt)
+    monkeypatch.setattr(pipeline, "save_file", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         _atari_run(tmp_path / "cut", condition)
     assert saves
-    monkeypatch.setattr(pipeline, "_atomic_save", real_save)
+    monkeypatch.setattr(pipeline, "save_file", real_save)
     torch.manual_seed(4321)
     assert _atari_run(tmp_path / "cut", condition) == whole

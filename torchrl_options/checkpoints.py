@@ -14,13 +14,15 @@ the same numbers as one that was never interrupted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import pickle
 import random
 import re
 import sys
+import uuid
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,7 @@ __all__ = [
     "MissingFileError",
     "load_file",
     "save_file",
+    "atomic_replace",
     "tensordict_to_plain",
     "tensordict_from_plain",
     "rng_state",
@@ -119,7 +122,8 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
 
 
 def save_file(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save`` through a temporary file and an atomic rename (a killed run never leaves half a file).
+    """``torch.save`` through a temporary file and an atomic rename (:func:`atomic_replace`: a killed run never
+    leaves half a file, and concurrent writers of one path never share a temporary file).
 
     ``obj`` must be plain data (see :func:`load_file`); TensorDicts go through :func:`tensordict_to_plain`.
 
@@ -130,10 +134,33 @@ def save_file(obj: Any, path: str | os.PathLike) -> None:
         >>> load_file(path)
         [1, 2]
     """
+    with atomic_replace(path) as tmp:
+        torch.save(obj, tmp)
+
+
+@contextlib.contextmanager
+def atomic_replace(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary file name next to ``path`` (unique to this call: process, thread and a random part) for the
+    block to write; when the block ends without an error, the file atomically replaces ``path``, otherwise it is
+    removed. Readers (and runs that share an output folder) see the old file or the whole new one, never a part.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "notes.txt")
+        >>> with atomic_replace(path) as tmp:
+        ...     _ = tmp.write_text("done")
+        >>> open(path).read(), os.listdir(os.path.dirname(path))
+        ('done', ['notes.txt'])
+    """
     path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}-{uuid.uuid4().hex[:12]}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
 
 
 def tensordict_to_plain(td: TensorDictBase) -> dict[str, Any]:

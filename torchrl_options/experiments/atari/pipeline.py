@@ -3,15 +3,13 @@ demonstrations and DDO, shared by the conditions of a seed), phase 3 (each condi
 resumed cell the uninterrupted one, bit for bit. See :mod:`torchrl_options.experiments.atari`."""
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import json
 import logging
 import os
 import time
-from typing import Any
 
 import torch
+from filelock import FileLock
 
 from torchrl_options.checkpoints import save_file
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
@@ -23,10 +21,6 @@ from torchrl_options.experiments.sweep import Cell, CellResult
 __all__ = ["run_atari_cell", "option_usage"]
 
 logger = logging.getLogger(__name__)
-
-
-def _atomic_save(obj: Any, path: str) -> None:
-    save_file(obj, path)
 
 
 def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
@@ -60,17 +54,13 @@ def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariCo
 
         agent.train(total_frames=10**12, callback=callback)
         if config.checkpoint_every and len(agent.log.episode_returns) < num_episodes:
-            _atomic_save(agent.state_dict(include_buffer=config.checkpoint_buffer), partial_path)
+            save_file(agent.state_dict(include_buffer=config.checkpoint_buffer), partial_path)
 
 
-@contextlib.contextmanager
-def _file_lock(path: str):
-    with open(path, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+def _seed_lock(seed_dir: str) -> FileLock:
+    """The lock of a seed's shared phases 1 and 2 (``<seed_dir>/.lock``): across processes and machines sharing
+    the folder, on POSIX and Windows alike; the cells of a seed wait for the first one's checkpoint and options."""
+    return FileLock(os.path.join(seed_dir, ".lock"))
 
 
 def _phase1(game: str, config: AtariConfig, seed: int, seed_dir: str):
@@ -81,7 +71,7 @@ def _phase1(game: str, config: AtariConfig, seed: int, seed_dir: str):
         _load_if(agent, partial_path)
         t0 = time.time()
         _train_episodes(agent, config.phase1_episodes, partial_path, config)
-        _atomic_save(agent.state_dict(include_buffer=config.checkpoint_buffer), path)
+        save_file(agent.state_dict(include_buffer=config.checkpoint_buffer), path)
         logger.info("%s seed %d: phase 1 done in %.0fs", game, seed, time.time() - t0)
         if os.path.exists(partial_path):
             os.remove(partial_path)
@@ -193,7 +183,7 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
     seed_dir = os.path.join(out_dir, game, f"seed{seed}")
     os.makedirs(seed_dir, exist_ok=True)
     t0 = time.time()
-    with _file_lock(os.path.join(seed_dir, ".lock")):
+    with _seed_lock(seed_dir):
         agent, _ = _phase1(game, config, seed, seed_dir)
         options, metadata = _phase2(game, config, seed, seed_dir, agent)
     n1 = config.phase1_episodes
