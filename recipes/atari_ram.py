@@ -27,6 +27,7 @@ import sys
 from functools import partial
 
 import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options.experiments import (
@@ -70,6 +71,8 @@ def run(cfg: DictConfig) -> list:
     results = ResultsLog(os.path.join(out_dir, "results.csv"))
     cells = sweep_cells(cfg)
     cell_fn = partial(run_atari_cell, config=config, out_dir=out_dir)
+    if config.torch_threads:  # the library sets no thread count: here for a serial sweep, in the workers below
+        torch.set_num_threads(config.torch_threads)
 
     def on_result(cell, result):
         log.info("%s done: %d episodes, mean phase-3 return %.3f, %.0fs", cell.name, len(result.returns),
@@ -83,7 +86,7 @@ def run(cfg: DictConfig) -> list:
         backend=cfg.sweep.backend,
         num_workers=cfg.sweep.num_workers,
         ray_address=cfg.sweep.ray_address,
-        threads_per_worker=cfg.sweep.threads_per_worker,
+        threads_per_worker=config.torch_threads or cfg.sweep.threads_per_worker,
         on_result=on_result,
     )
     log.info("%d cells ran, %d were already finished", len(ran), len(cells) - len(ran))

@@ -40,7 +40,9 @@ def _run(cfg):
     cells = [gridworld.Cell("supervised", c, 0) for c in cfg["conditions_to_run"]]
     import functools
 
+    before = torch.get_rng_state()
     run_sweep(functools.partial(gridworld.run_gridworld_cell, cfg=cfg), cells, log)
+    assert torch.equal(torch.get_rng_state(), before), "a cell left the caller's random state changed"
     return (out / "results.csv").read_bytes()
 
 
@@ -94,7 +96,11 @@ def _atari_run(out_dir, condition):
         option_frames=False, ram_encoding="bytes", eps_init=0.3, eps_end=0.3, clip_rewards=False,
     )  # fmt: skip
     log = ResultsLog(Path(out_dir) / "results.csv")
+    before, threads = torch.get_rng_state(), torch.get_num_threads()
+    config.torch_threads = threads + 1  # the recipe's to set: the cell leaves the thread count alone
     run_sweep(functools.partial(atari.run_atari_cell, config=config, out_dir=str(out_dir)), [Cell("Atlantis", condition, 0)], log)
+    assert torch.equal(torch.get_rng_state(), before), "a cell left the caller's random state changed"
+    assert torch.get_num_threads() == threads
     return (Path(out_dir) / "results.csv").read_bytes()
 
 

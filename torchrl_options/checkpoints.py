@@ -9,7 +9,8 @@ needs pickle is refused with an error naming it. Files written by older versions
 
 :func:`rng_state` and :func:`set_rng_state` capture and restore every global random state a run draws from
 (torch CPU and CUDA, numpy, Python's ``random``) as plain data, so that a run resumed from a checkpoint draws
-the same numbers as one that was never interrupted.
+the same numbers as one that was never interrupted; :func:`scoped_seed` seeds torch for a block and restores them
+all after it.
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ __all__ = [
     "tensordict_from_plain",
     "rng_state",
     "set_rng_state",
+    "scoped_seed",
     "convert_file",
 ]
 
@@ -237,6 +239,35 @@ def set_rng_state(state: Mapping[str, Any]) -> None:
         cuda = list(state["cuda"])
         if len(cuda) == torch.cuda.device_count():
             torch.cuda.set_rng_state_all(cuda)
+
+
+@contextlib.contextmanager
+def scoped_seed(seed: int) -> Iterator[None]:
+    """``torch.manual_seed(seed)`` for the block only: afterwards every global random state (:func:`rng_state`:
+    torch CPU, CUDA when already initialised, numpy, Python) is what it was before, also after an error or an
+    interruption. A function that draws from the global generators (TorchRL's exploration modules and replay
+    buffers do) is then reproducible from ``seed`` without changing the random numbers of its caller.
+
+    Examples:
+        >>> import torch
+        >>> with scoped_seed(0):
+        ...     a = torch.rand(2)
+        >>> with scoped_seed(0):
+        ...     b = torch.rand(2)
+        >>> torch.equal(a, b)
+        True
+        >>> state = torch.get_rng_state()
+        >>> with scoped_seed(1):
+        ...     _ = torch.rand(3)
+        >>> torch.equal(state, torch.get_rng_state())
+        True
+    """
+    saved = rng_state()
+    try:
+        torch.manual_seed(seed)
+        yield
+    finally:
+        set_rng_state(saved)
 
 
 # ---------------------------------------------------------------------------------------------- legacy files

@@ -38,6 +38,7 @@ from torchrl_options.checkpoints import (
     atomic_replace,
     load_file,
     save_file,
+    scoped_seed,
     tensordict_from_plain,
     tensordict_to_plain,
 )
@@ -386,9 +387,12 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
     and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
     """
-    cfg = dict(cfg)
+    with scoped_seed(cell.seed):  # the cell's random numbers come from its seed; the caller's are left as they were
+        return _run_cell(cell, dict(cfg))
+
+
+def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
     progress = bool(cfg.get("progress", False))
-    torch.manual_seed(cell.seed)
     setting = cfg["settings"][cell.setting]
     condition = cfg["conditions"][cell.condition]
     mode = condition["mode"]
@@ -592,8 +596,8 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
 
 
 def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | None:
-    """What a GridWorld recipe script does with its Hydra config: one torch thread (tiny networks), then the
-    recipe. Returns the summary table (``None`` when the run stopped early), for the script to print.
+    """What a GridWorld recipe script does with its Hydra config: the recipe, its console kept quiet if asked
+    (the script sets the thread count: one torch thread suits the tiny networks). Returns the summary table (``None`` when the run stopped early), for the script to print.
 
     Args:
         cfg: the recipe's config (an OmegaConf ``DictConfig`` or a plain mapping).
@@ -611,5 +615,4 @@ def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | 
         for name in ("torchrl", "torchrl_options"):
             logging.getLogger(name).setLevel(logging.WARNING)
         resume_logger.setLevel(logging.INFO)
-    torch.set_num_threads(1)
     return run_gridworld_recipe(cfg, title)

@@ -36,6 +36,10 @@ class AtariConfig:
     time (:meth:`~torchrl_options.agents.OptionsDQN.record_evaluation`); the cell's json file keeps them and
     ``summary.md`` compares the conditions on them.
 
+    ``torch_threads``: torch's thread count for the cells, set by the recipe (in a serial sweep's process, else in
+    each pool or Ray worker instead of ``sweep.threads_per_worker``); ``None``: left as it is. The library itself
+    sets no thread count.
+
     With batched games, episodes end several at a time and a phase stops at the first collector batch that
     completes its count: phase 1 may then have run up to ``num_envs - 1`` episodes more than
     ``phase1_episodes``. They are part of ``A``'s continuation (the same agent), so ``A``'s first phase-3 episodes

@@ -8,10 +8,9 @@ import logging
 import os
 import time
 
-import torch
 from filelock import FileLock
 
-from torchrl_options.checkpoints import save_file
+from torchrl_options.checkpoints import save_file, scoped_seed
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
 from torchrl_options.experiments.atari.config import AtariConfig
 from torchrl_options.experiments.atari.figures import write_option_frames
@@ -172,13 +171,20 @@ def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> C
 
     Returns:
         The phase-1 then phase-3 episode returns, and cumulative frames (see the module docstring).
+
+    The cell's random numbers come from its seed alone (each agent seeds torch when it is made); the caller's
+    global random states are restored when the cell ends (:func:`~torchrl_options.checkpoints.scoped_seed`), and
+    the thread count is the caller's (the recipe sets ``AtariConfig.torch_threads``).
     """
     if isinstance(config, dict):
         config = AtariConfig.from_dict(config)
     if cell.condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {CONDITIONS}, got {cell.condition!r}.")
-    if config.torch_threads:
-        torch.set_num_threads(config.torch_threads)
+    with scoped_seed(cell.seed):  # every random state of the caller is left as it was
+        return _run_cell(cell, config, out_dir)
+
+
+def _run_cell(cell: Cell, config: AtariConfig, out_dir: str) -> CellResult:
     game, seed = cell.setting, cell.seed
     seed_dir = os.path.join(out_dir, game, f"seed{seed}")
     os.makedirs(seed_dir, exist_ok=True)

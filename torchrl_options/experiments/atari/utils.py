@@ -10,7 +10,7 @@ import torch
 from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
-from torchrl_options.checkpoints import load_file
+from torchrl_options.checkpoints import load_file, scoped_seed
 from torchrl_options.experiments.atari.config import AtariConfig
 
 logger = logging.getLogger(__name__)
@@ -40,8 +40,8 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
 
     num_actions = _num_actions(game, config)
     out = num_actions + (num_options if mode == "both" else 0)
-    torch.manual_seed(seed)
-    q_net = ram_q_network(out, encoding=config.ram_encoding, num_cells=config.hidden_sizes)
+    with scoped_seed(seed):  # the Q-network's initial weights come from the seed alone
+        q_net = ram_q_network(out, encoding=config.ram_encoding, num_cells=config.hidden_sizes)
     dqn_config = OptionsDQNConfig(
         mode=mode,
         num_envs=1 if config.vector_env else config.num_envs,  # a vector env is batched already
