@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from functools import partial
 
 import hydra
@@ -44,6 +43,7 @@ from torchrl_options.experiments.recipe_runner import recipe_guard
 from torchrl_options.experiments.validation import check_atari_recipe_settings
 from torchrl_options.experiments.atari import (
     AtariConfig,
+    store_atari_config,
     atari_aggregates,
     atari_cells,
     atari_comparison,
@@ -55,6 +55,7 @@ from torchrl_options.experiments.atari import (
 )
 
 log = logging.getLogger("atari_ram")
+store_atari_config()  # the schema of the `atari` section, named in config/atari_ram.yaml's defaults
 
 
 def run(cfg: DictConfig) -> list:
@@ -146,6 +147,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    # `preset=smoke` is the documented spelling of the config group `atari_preset`
-    sys.argv = [("atari_" + a) if a.startswith("preset=") else a for a in sys.argv]
     main()

@@ -35,7 +35,7 @@ cells), :mod:`~torchrl_options.experiments.atari.config` (:class:`AtariConfig`),
 (statistics and Markdown); :mod:`~torchrl_options.experiments.atari.utils` builds the envs and agents.
 """
 from torchrl_options.experiments.atari.conditions import atari_cells, CONDITIONS, OPTION_FLAGS
-from torchrl_options.experiments.atari.config import AtariConfig
+from torchrl_options.experiments.atari.config import AtariConfig, store_atari_config
 from torchrl_options.experiments.atari.figures import write_option_frames
 from torchrl_options.experiments.atari.pipeline import option_usage, run_atari_cell
 from torchrl_options.experiments.atari.summary import (
@@ -65,4 +65,5 @@ __all__ = [
     "AtariComparison",
     "CONDITIONS",
     "OPTION_FLAGS",
+    "store_atari_config",
 ]

@@ -1,15 +1,17 @@
-"""The settings of one Atari RAM cell (:class:`AtariConfig`), checked when they are read."""
+"""The settings of one Atari RAM cell (:class:`AtariConfig`), checked when they are read, and the recipe's Hydra
+schema (:func:`store_atari_config`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
-__all__ = ["AtariConfig"]
+__all__ = ["AtariConfig", "store_atari_config"]
 
 
 @dataclass
 class AtariConfig:
-    """Settings of one Atari RAM cell (mirrors ``recipes/config/atari_ram.yaml``).
+    """Settings of one Atari RAM cell: the schema of the ``atari`` section of ``recipes/config/atari_ram.yaml``
+    (:func:`store_atari_config`).
 
     Env: ``frame_skip``, ``repeat_action_probability``, ``noop_max``, ``episodic_life``, ``clip_rewards``,
     ``max_episode_steps`` (see :func:`~torchrl_options.envs.atari.make_atari_ram_env`); ``ram_encoding`` is the
@@ -175,9 +177,39 @@ class AtariConfig:
             max_episode_steps=self.max_episode_steps,
         )
 
+    def dqn_settings(self) -> dict[str, Any]:
+        """The settings :class:`~torchrl_options.agents.OptionsDQNConfig` also has, by name (``lr``, ``gamma``,
+        ``batch_size``, ...): the agent's config is built from them, not copied field by field.
+
+        Examples:
+            >>> settings = AtariConfig(lr=0.01).dqn_settings()
+            >>> settings["lr"], "phase1_episodes" in settings
+            (0.01, False)
+        """
+        from torchrl_options.agents import OptionsDQNConfig
+
+        shared = {f.name for f in fields(OptionsDQNConfig)}
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
+
     def options_for(self, game: str) -> int:
         from torchrl_options.envs.atari import PAPER_NUM_OPTIONS
 
         if self.num_options is not None:
             return int(self.num_options)
         return PAPER_NUM_OPTIONS.get(game, 4)
+
+
+def store_atari_config(group: str = "atari", name: str = "schema") -> None:
+    """Registers :class:`AtariConfig` in Hydra's ``ConfigStore`` as ``<group>/<name>``: the one schema of the
+    Atari recipe's ``atari`` section (its defaults and types), which ``recipes/config/atari_ram.yaml`` names in its
+    ``defaults`` and its presets only override. Needs ``hydra-core`` (the ``recipes`` extra).
+
+    Examples:
+        >>> from hydra.core.config_store import ConfigStore
+        >>> store_atari_config()
+        >>> ConfigStore.instance().load("atari/schema.yaml").node.phase1_episodes
+        1000
+    """
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group=group, name=name, node=AtariConfig)

@@ -42,30 +42,16 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
     out = num_actions + (num_options if mode == "both" else 0)
     with scoped_seed(seed):  # the Q-network's initial weights come from the seed alone
         q_net = ram_q_network(out, encoding=config.ram_encoding, num_cells=config.hidden_sizes)
-    dqn_config = OptionsDQNConfig(
-        mode=mode,
+    settings = config.dqn_settings()  # lr, gamma, batch_size, ...: the settings both configs have
+    settings.update(
         num_envs=1 if config.vector_env else config.num_envs,  # a vector env is batched already
-        parallel=config.parallel,
-        total_frames=10**12,
-        frames_per_batch=config.frames_per_batch,
-        buffer_size=config.buffer_size,
-        batch_size=config.batch_size,
-        learning_starts=config.learning_starts,
-        updates_per_batch=config.updates_per_batch,
-        lr=config.lr,
-        gamma=config.gamma,
         hidden_sizes=tuple(config.hidden_sizes),
-        eps_init=config.eps_init,
-        eps_end=config.eps_end,
         eps_annealing_frames=max(int(config.eps_annealing_frames), 1),
-        hard_update_interval=config.hard_update_interval,
-        double_dqn=config.double_dqn,
-        greedy_options=greedy_options,
-        intra_option_actions=intra_option_actions,
-        option_suffixes=option_suffixes,
-        seed=seed,
-        device=config.device,
     )
+    dqn_config = OptionsDQNConfig(
+        **settings, mode=mode, total_frames=10**12, greedy_options=greedy_options,
+        intra_option_actions=intra_option_actions, option_suffixes=option_suffixes, seed=seed,
+    )  # fmt: skip
     return OptionsDQN(
         _env_factory(game, config, seed, batched=True), dqn_config, options=options, num_options=num_options,
         q_network=q_net, optimizer=partial(torch.optim.Adam, fused=True) if config.fused_adam else None,
