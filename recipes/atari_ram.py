@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from functools import partial
 
 import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options.experiments import (
@@ -43,6 +43,7 @@ from torchrl_options.experiments.recipe_runner import recipe_guard
 from torchrl_options.experiments.validation import check_atari_recipe_settings
 from torchrl_options.experiments.atari import (
     AtariConfig,
+    store_atari_config,
     atari_aggregates,
     atari_cells,
     atari_comparison,
@@ -54,6 +55,7 @@ from torchrl_options.experiments.atari import (
 )
 
 log = logging.getLogger("atari_ram")
+store_atari_config()  # the schema of the `atari` section, named in config/atari_ram.yaml's defaults
 
 
 def run(cfg: DictConfig) -> list:
@@ -70,6 +72,8 @@ def run(cfg: DictConfig) -> list:
     results = ResultsLog(os.path.join(out_dir, "results.csv"))
     cells = sweep_cells(cfg)
     cell_fn = partial(run_atari_cell, config=config, out_dir=out_dir)
+    if config.torch_threads:  # the library sets no thread count: here for a serial sweep, in the workers below
+        torch.set_num_threads(config.torch_threads)
 
     def on_result(cell, result):
         log.info("%s done: %d episodes, mean phase-3 return %.3f, %.0fs", cell.name, len(result.returns),
@@ -83,7 +87,7 @@ def run(cfg: DictConfig) -> list:
         backend=cfg.sweep.backend,
         num_workers=cfg.sweep.num_workers,
         ray_address=cfg.sweep.ray_address,
-        threads_per_worker=cfg.sweep.threads_per_worker,
+        threads_per_worker=config.torch_threads or cfg.sweep.threads_per_worker,
         on_result=on_result,
     )
     log.info("%d cells ran, %d were already finished", len(ran), len(cells) - len(ran))
@@ -143,6 +147,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    # `preset=smoke` is the documented spelling of the config group `atari_preset`
-    sys.argv = [("atari_" + a) if a.startswith("preset=") else a for a in sys.argv]
     main()

@@ -9,12 +9,14 @@ summary table.
     python recipes/four_rooms.py backend=local num_workers=8 logger.backend=tensorboard
 """
 import hydra
+import torch
 
 from torchrl_options.experiments.gridworld import run_gridworld_script
 from torchrl_options.experiments.recipe_runner import recipe_guard
 
 
 def run(cfg, quiet: bool = False) -> str | None:
+    torch.set_num_threads(1)  # the networks are tiny: one thread is the fastest
     summary = run_gridworld_script(cfg, "Four rooms", quiet=quiet)
     if summary is not None:
         print(summary)

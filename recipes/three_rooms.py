@@ -5,12 +5,14 @@ DQN with the augmented action space (H1u) against DQN continuing with actions on
     python recipes/three_rooms.py scale=paper    # 15 seeds, 5000 pre-training + 5000 episodes
 """
 import hydra
+import torch
 
 from torchrl_options.experiments.gridworld import run_gridworld_script
 from torchrl_options.experiments.recipe_runner import recipe_guard
 
 
 def run(cfg, quiet: bool = False) -> str | None:
+    torch.set_num_threads(1)  # the networks are tiny: one thread is the fastest
     summary = run_gridworld_script(cfg, "Three rooms", quiet=quiet)
     if summary is not None:
         print(summary)

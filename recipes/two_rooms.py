@@ -8,12 +8,14 @@ to converge.
     python recipes/two_rooms.py scale=paper      # 30 seeds x 5000 episodes
 """
 import hydra
+import torch
 
 from torchrl_options.experiments.gridworld import run_gridworld_script
 from torchrl_options.experiments.recipe_runner import recipe_guard
 
 
 def run(cfg, quiet: bool = False) -> str | None:
+    torch.set_num_threads(1)  # the networks are tiny: one thread is the fastest
     summary = run_gridworld_script(cfg, "Two rooms", quiet=quiet)
     if summary is not None:
         print(summary)

@@ -306,6 +306,9 @@ def _recipe_cfg(name, *overrides):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
+    from torchrl_options.experiments.atari import store_atari_config
+
+    store_atari_config()  # the schema of atari_ram's `atari` section (the recipe registers it when imported)
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         return OmegaConf.to_container(compose(name, overrides=list(overrides)), resolve=True)
 
@@ -395,7 +398,7 @@ ATARI = [
 
 @pytest.mark.parametrize("key, value, phrase", ATARI, ids=[f"{k}={v!r}" for k, v, _ in ATARI])
 def test_atari_recipe_settings(key, value, phrase):
-    cfg = _changed("atari_ram", key, value, "atari_preset=smoke")
+    cfg = _changed("atari_ram", key, value, "preset=smoke")
     with pytest.raises(ValueError) as info:
         check_atari_recipe_settings(cfg)
     assert phrase in str(info.value)
@@ -434,4 +437,4 @@ def test_valid_recipe_settings_pass():
                             ("three_rooms", []), ("segment", [])):  # fmt: skip
         cfg = _recipe_cfg(name, *overrides)
         (check_segment_settings if name == "segment" else check_gridworld_settings)(cfg)
-    check_atari_recipe_settings(_recipe_cfg("atari_ram", "atari_preset=paper"))
+    check_atari_recipe_settings(_recipe_cfg("atari_ram", "preset=paper"))

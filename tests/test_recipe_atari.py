@@ -11,15 +11,9 @@ import torch
 from torchrl_options.checkpoints import load_file
 from torchrl_options.envs.atari import ATARI_GAMES, atari_available
 from torchrl_options.experiments import ResultsLog
-from torchrl_options.experiments.atari import (
-    AtariConfig,
-    _close,
-    _make_agent,
-    _num_actions,
-    _train_episodes,
-    atari_comparison,
-    option_usage,
-)
+from torchrl_options.experiments.atari import AtariConfig, atari_comparison, option_usage, store_atari_config
+from torchrl_options.experiments.atari.pipeline import _train_episodes
+from torchrl_options.experiments.atari.utils import _close, _make_agent, _num_actions
 
 pytestmark = pytest.mark.skipif(not atari_available(), reason="needs ale-py (the atari extra)")
 
@@ -36,6 +30,7 @@ def _recipe():
 def _config(overrides):
     from hydra import compose, initialize_config_dir
 
+    store_atari_config()  # the schema of the `atari` section (the recipe registers it when imported)
     with initialize_config_dir(config_dir=os.path.join(ROOT, "recipes", "config"), version_base="1.3"):
         return compose("atari_ram", overrides=overrides)
 
@@ -47,40 +42,40 @@ def _rows(path):
 
 def test_presets_compose():
     for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cpu-vec-rr", "cores16", "cores16-vec", "gpu-hour", "paper"):
-        cfg = _config([f"atari_preset={preset}"])
+        cfg = _config([f"preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
-    paper = AtariConfig.from_dict(dict(_config(["atari_preset=paper"]).atari))
+    paper = AtariConfig.from_dict(dict(_config(["preset=paper"]).atari))
     assert (paper.phase1_episodes, paper.phase3_episodes, paper.num_demonstrations) == (1000, 4000, 100)
-    assert _config(["atari_preset=paper"]).seeds == 50
+    assert _config(["preset=paper"]).seeds == 50
     # cores16-vec: cores16's budget with cpu-vec's batching and greedy evaluation, nothing else changed
     batching = ["atari.num_envs=8", "atari.vector_env=true", "atari.frames_per_batch=400", "atari.updates_per_batch=16",
                 "atari.fused_adam=true", "atari.eval_every=30", "atari.eval_episodes=16"]
-    assert dict(_config(["atari_preset=cores16-vec"]).atari) == dict(_config(["atari_preset=cores16", *batching]).atari)
+    assert dict(_config(["preset=cores16-vec"]).atari) == dict(_config(["preset=cores16", *batching]).atari)
     # cpu-vec-rr: cpu-vec's budget at DQN's usual replay ratio, with greedy evaluation, nothing else changed
     ratio = ["atari.updates_per_batch=100", "atari.hard_update_interval=500", "atari.eval_every=50",
              "atari.eval_episodes=16"]
-    assert dict(_config(["atari_preset=cpu-vec-rr"]).atari) == dict(_config(["atari_preset=cpu-vec", *ratio]).atari)
-    assert dict(_config(["atari_preset=cpu-vec-rr"]).atari) != dict(_config(["atari_preset=cpu-vec"]).atari)
-    assert _config(["atari_preset=cpu-vec-rr"]).seeds == 8
-    assert _config(["atari_preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
+    assert dict(_config(["preset=cpu-vec-rr"]).atari) == dict(_config(["preset=cpu-vec", *ratio]).atari)
+    assert dict(_config(["preset=cpu-vec-rr"]).atari) != dict(_config(["preset=cpu-vec"]).atari)
+    assert _config(["preset=cpu-vec-rr"]).seeds == 8
+    assert _config(["preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
     # seeds: a count (0 .. n-1) or a list, e.g. to split a sweep over machines and join the results
     recipe = _recipe()
-    names = [c.name for c in recipe.sweep_cells(_config(["atari_preset=cores16", "seeds=[3,5]", "game=Pooyan"]))]
+    names = [c.name for c in recipe.sweep_cells(_config(["preset=cores16", "seeds=[3,5]", "game=Pooyan"]))]
     assert names == ["Pooyan-A-seed3", "Pooyan-A-seed5", "Pooyan-H1-seed3", "Pooyan-H1-seed5"]
-    assert len(recipe.sweep_cells(_config(["atari_preset=cores16"]))) == 5 * 3 * 2
-    four = recipe.sweep_cells(_config(["atari_preset=smoke", "conditions=[A,H1,A0,H1w]"]))
+    assert len(recipe.sweep_cells(_config(["preset=cores16"]))) == 5 * 3 * 2
+    four = recipe.sweep_cells(_config(["preset=smoke", "conditions=[A,H1,A0,H1w]"]))
     assert [c.condition for c in four] == ["A", "H1", "A0", "H1w"]
     with pytest.raises(ValueError, match="conditions must be a non-empty list of .*got \\['A', 'H2'\\]"):
-        recipe.sweep_cells(_config(["atari_preset=smoke", "conditions=[A,H2]"]))
+        recipe.sweep_cells(_config(["preset=smoke", "conditions=[A,H2]"]))
     for bad in ("H1iw", "H1gg", "H1x", "A1"):  # the letters after H1 come once each, in the order w, g, i
         with pytest.raises(ValueError, match=f"conditions must be .*got \\['{bad}'\\]"):
-            recipe.sweep_cells(_config(["atari_preset=smoke", f"conditions=[{bad}]"]))
+            recipe.sweep_cells(_config(["preset=smoke", f"conditions=[{bad}]"]))
 
 
 def test_smoke_end_to_end_and_resume(tmp_path):
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Seaquest", f"out_dir={tmp_path}"])
+    cfg = _config(["preset=smoke", "game=Seaquest", f"out_dir={tmp_path}"])
     ran = recipe.run(cfg)
     assert [c.name for c in ran] == ["Seaquest-A-seed0", "Seaquest-H1-seed0"]
     rows = _rows(tmp_path / "results.csv")
@@ -118,16 +113,16 @@ def test_smoke_end_to_end_and_resume(tmp_path):
     longer = ["atari.phase1_episodes=5", "atari.phase3_episodes=4"]
     # checkpoint_every sets where training restarts its episodes (a checkpoint ends a chunk): a cell setting
     with pytest.raises(ValueError, match=r"atari.checkpoint_every: 2 there, 7 now"):
-        recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, "atari.checkpoint_every=7"]))
+        recipe.run(_config(["preset=smoke", "game=Seaquest", out, "atari.checkpoint_every=7"]))
     with pytest.raises(ValueError, match=r"atari.phase1_episodes: 3 there, 5 now.*atari.phase3_episodes: 3 there, 4 now"):
-        recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *longer]))
+        recipe.run(_config(["preset=smoke", "game=Seaquest", out, *longer]))
     assert _rows(tmp_path / "results.csv") == rows
     # settings of how cells run (checkpoints, greedy evaluation, device) may change; so may seeds and conditions
     same = ["atari.eval_every=2", "atari.fused_adam=true", "atari.torch_threads=1"]
-    assert recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *same])) == []
+    assert recipe.run(_config(["preset=smoke", "game=Seaquest", out, *same])) == []
     # allow_changed_settings mixes them knowingly, and records the new settings
     mixed = ["atari.lr=0.01", "allow_changed_settings=true"]
-    assert recipe.run(_config(["atari_preset=smoke", "game=Seaquest", out, *mixed])) == []
+    assert recipe.run(_config(["preset=smoke", "game=Seaquest", out, *mixed])) == []
     settings = json.loads((tmp_path / "settings.json").read_text())
     assert settings["atari.lr"] == 0.01 and settings["atari.phase1_episodes"] == 3 and "atari.device" not in settings
 
@@ -136,7 +131,7 @@ def test_fused_adam_setting():
     config = AtariConfig(max_episode_steps=20, hidden_sizes=(8, 8, 8), fused_adam=True)
     assert _make_agent("Pooyan", config, 0, "actions").optimizer.defaults["fused"] is True
     assert not _make_agent("Pooyan", AtariConfig(hidden_sizes=(8, 8, 8)), 0, "actions").optimizer.defaults.get("fused")
-    assert _config(["atari_preset=smoke", "atari.fused_adam=true"]).atari.fused_adam is True
+    assert _config(["preset=smoke", "atari.fused_adam=true"]).atari.fused_adam is True
 
 
 def test_periodic_checkpoint_resumes_inside_a_phase(tmp_path):
@@ -161,7 +156,7 @@ def test_periodic_checkpoint_resumes_inside_a_phase(tmp_path):
 
 def _ray_cfg(tmp_path, game):
     return _config([
-        "atari_preset=smoke", f"game={game}", f"out_dir={tmp_path}", "sweep.backend=ray", "sweep.num_workers=2",
+        "preset=smoke", f"game={game}", f"out_dir={tmp_path}", "sweep.backend=ray", "sweep.num_workers=2",
         "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
         "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
     ])
@@ -188,7 +183,7 @@ def test_ray_local_two_cells(tmp_path):
 @pytest.mark.slow
 def test_smoke_all_five_games(tmp_path):
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", f"games=[{','.join(ATARI_GAMES)}]", f"out_dir={tmp_path}"])
+    cfg = _config(["preset=smoke", f"games=[{','.join(ATARI_GAMES)}]", f"out_dir={tmp_path}"])
     recipe.run(cfg)
     rows = _rows(tmp_path / "results.csv")
     assert {r["setting"] for r in rows} == set(ATARI_GAMES)
@@ -202,7 +197,7 @@ def test_control_and_warm_start_conditions(tmp_path):
     also learned inside options) beside the paper's A and H1: all six share phases 1 and 2, and the summary reports
     each pair and the option usage."""
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w,H1g,H1i]",
+    cfg = _config(["preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0,H1w,H1g,H1i]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8"])
@@ -239,7 +234,7 @@ def test_combined_conditions(tmp_path):
     """``H1wi`` (the warm start with intra-option transitions) and ``H1is``; the summary compares them with A, H1w
     and H1."""
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,H1w,H1wi,H1is]",
+    cfg = _config(["preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,H1w,H1wi,H1is]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=2", "atari.phase3_episodes=2",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8"])
@@ -312,7 +307,7 @@ def test_vector_env_cells(tmp_path):
     agent.train(total_frames=120)
     assert len(agent.log.episode_returns) == 6 and agent.frames == 120  # 3 games x 2 episodes of 20 steps
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "atari.max_episode_steps=20",
+    cfg = _config(["preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "atari.max_episode_steps=20",
                    "atari.phase1_episodes=4", "atari.phase3_episodes=4", "atari.num_demonstrations=2",
                    "atari.demo_max_steps=20", "atari.option_frames=false", "atari.learning_starts=8",
                    "atari.num_envs=2", "atari.vector_env=true", "atari.frames_per_batch=20",
@@ -341,7 +336,7 @@ def test_greedy_evaluation(tmp_path):
     import json
 
     recipe = _recipe()
-    cfg = _config(["atari_preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0]",
+    cfg = _config(["preset=smoke", "game=Pooyan", f"out_dir={tmp_path}", "conditions=[A,H1,A0]",
                    "atari.max_episode_steps=20", "atari.phase1_episodes=4", "atari.phase3_episodes=4",
                    "atari.num_demonstrations=2", "atari.demo_max_steps=20", "atari.option_frames=false",
                    "atari.learning_starts=8", "atari.eval_every=2", "atari.eval_episodes=2"])
@@ -363,7 +358,7 @@ def test_greedy_evaluation(tmp_path):
 
 def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
     import torchrl_options.discovery as discovery
-    from torchrl_options.experiments.atari import _phase2
+    from torchrl_options.experiments.atari.pipeline import _phase2
 
     seen = []
     real = discovery.discover_options
@@ -385,7 +380,24 @@ def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
         fits[m] = meta["log_likelihood_per_step"]
     assert seen == [1, 8]
     assert fits[8] > fits[1] + 0.05, fits  # the same demonstrations and E-steps, 8 G-steps each: a closer fit
-    assert _config(["atari_preset=smoke", "atari.ddo_m_steps=4"]).atari.ddo_m_steps == 4
+    assert _config(["preset=smoke", "atari.ddo_m_steps=4"]).atari.ddo_m_steps == 4
     for bad in (0, 1.5, True):  # refused when the settings are read, not after phase 1
         with pytest.raises(ValueError, match="ddo_m_steps must be a positive int"):
             AtariConfig.from_dict({"ddo_m_steps": bad})
+
+
+def test_agent_config_takes_the_shared_settings_by_name():
+    """``OptionsDQNConfig`` is built from the ``AtariConfig`` settings of the same name (not copied field by field)."""
+    config = AtariConfig(lr=0.02, gamma=0.5, batch_size=7, buffer_size=99, double_dqn=True, eps_init=0.4, eps_end=0.2,
+                         eps_annealing_frames=0, hidden_sizes=(8, 8, 8), max_episode_steps=20, noop_max=0,
+                         learning_starts=3, frames_per_batch=5, updates_per_batch=2, hard_update_interval=9)
+    agent = _make_agent("Pooyan", config, 5, "actions")
+    try:
+        dqn = agent.config
+        assert (dqn.lr, dqn.gamma, dqn.batch_size, dqn.buffer_size, dqn.double_dqn, dqn.eps_init, dqn.eps_end) == (
+            0.02, 0.5, 7, 99, True, 0.4, 0.2)
+        assert (dqn.learning_starts, dqn.frames_per_batch, dqn.updates_per_batch, dqn.hard_update_interval) == (3, 5, 2, 9)
+        assert dqn.hidden_sizes == (8, 8, 8) and dqn.eps_annealing_frames == 1 and dqn.seed == 5
+        assert dqn.mode == "actions" and dqn.num_envs == 1
+    finally:
+        _close(agent)

@@ -75,3 +75,31 @@ def test_interrupt_prints_one_line_and_resumes(tmp_path, backend, sig, target):
     text = run.finish()
     assert f"supervised-A-seed0: resuming from {checkpoint} at episode" in text, text
     assert run.proc.returncode == 130
+
+
+class _FailingExit:
+    """A context manager whose ``__exit__`` fails, as tensordict's ``to_module`` does when an interruption unwinds
+    through TorchRL's DQN loss."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        raise RuntimeError("Converting a tensordict to boolean value is not permitted")
+
+
+def test_interruption_hidden_by_a_failing_exit_is_still_one_line(tmp_path, capsys):
+    from torchrl_options.experiments.recipe_runner import recipe_guard
+
+    with pytest.raises(SystemExit) as stop:
+        with recipe_guard(tmp_path), _FailingExit():
+            raise KeyboardInterrupt
+    assert stop.value.code == 130
+    assert capsys.readouterr().err.startswith("interrupted: 0 finished cells saved in")
+    with pytest.raises(RuntimeError, match="to boolean"):  # the same error without an interruption stays an error
+        with recipe_guard(tmp_path), _FailingExit():
+            pass
+    with pytest.raises(SystemExit) as stop:
+        with recipe_guard(tmp_path):
+            raise ValueError("episodes must be an int >= 1, got -5.")
+    assert stop.value.code == 2

@@ -40,7 +40,9 @@ def _run(cfg):
     cells = [gridworld.Cell("supervised", c, 0) for c in cfg["conditions_to_run"]]
     import functools
 
+    before = torch.get_rng_state()
     run_sweep(functools.partial(gridworld.run_gridworld_cell, cfg=cfg), cells, log)
+    assert torch.equal(torch.get_rng_state(), before), "a cell left the caller's random state changed"
     return (out / "results.csv").read_bytes()
 
 
@@ -51,7 +53,7 @@ def test_gridworld_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition):
     assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
 
     saves = []
-    real_save = gridworld._atomic_save
+    real_save = gridworld.save_file
 
     def save_then_interrupt(obj, path):
         real_save(obj, path)
@@ -61,13 +63,13 @@ def test_gridworld_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition):
                 raise KeyboardInterrupt
 
     cfg = _cfg(tmp_path / "cut", f"conditions_to_run=[{condition}]")
-    monkeypatch.setattr(gridworld, "_atomic_save", save_then_interrupt)
+    monkeypatch.setattr(gridworld, "save_file", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         _run(cfg)
     assert not (tmp_path / "cut" / "results.csv").exists() or b"supervised" not in (tmp_path / "cut" / "results.csv").read_bytes()
     ckpt = tmp_path / "cut" / "cells" / f"supervised-{condition}-seed0" / "dqn.pt"
     assert 16 <= len(load_file(ckpt)["log"]["episode_returns"]) < 48  # interrupted mid-cell
-    monkeypatch.setattr(gridworld, "_atomic_save", real_save)
+    monkeypatch.setattr(gridworld, "save_file", real_save)
     torch.manual_seed(1234)  # the resumed process's global random state is whatever it is
     resumed = _run(cfg)
     assert resumed == whole
@@ -94,7 +96,11 @@ def _atari_run(out_dir, condition):
         option_frames=False, ram_encoding="bytes", eps_init=0.3, eps_end=0.3, clip_rewards=False,
     )  # fmt: skip
     log = ResultsLog(Path(out_dir) / "results.csv")
+    before, threads = torch.get_rng_state(), torch.get_num_threads()
+    config.torch_threads = threads + 1  # the recipe's to set: the cell leaves the thread count alone
     run_sweep(functools.partial(atari.run_atari_cell, config=config, out_dir=str(out_dir)), [Cell("Atlantis", condition, 0)], log)
+    assert torch.equal(torch.get_rng_state(), before), "a cell left the caller's random state changed"
+    assert torch.get_num_threads() == threads
     return (Path(out_dir) / "results.csv").read_bytes()
 
 
@@ -102,12 +108,12 @@ def _atari_run(out_dir, condition):
 def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase):
     """Interrupted right after the first checkpoint inside phase 1 (A) or phase 3 (H1: options, executor)."""
     pytest.importorskip("ale_py")
-    import torchrl_options.experiments.atari as atari
+    import torchrl_options.experiments.atari.pipeline as pipeline
 
     whole = _atari_run(tmp_path / "whole", condition)
     returns = [line.split(b",")[4] for line in whole.splitlines()[1:]]
     assert len(set(returns)) > 1, "the returns must vary for the comparison to mean something"
-    real_save, saves = atari._atomic_save, []
+    real_save, saves = pipeline.save_file, []
 
     def save_then_interrupt(obj, path):
         real_save(obj, path)
@@ -115,10 +121,10 @@ def test_atari_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition, phase)
             saves.append(path)
             raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint inside the phase
 
-    monkeypatch.setattr(atari, "_atomic_save", save_then_interrupt)
+    monkeypatch.setattr(pipeline, "save_file", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         _atari_run(tmp_path / "cut", condition)
     assert saves
-    monkeypatch.setattr(atari, "_atomic_save", real_save)
+    monkeypatch.setattr(pipeline, "save_file", real_save)
     torch.manual_seed(4321)
     assert _atari_run(tmp_path / "cut", condition) == whole

@@ -79,7 +79,7 @@ def test_gridworld_cached_greedy_trajectories_refuse_pickle(tmp_path, crafted):
 
 
 def test_atari_cell_checkpoint_refuses_pickle(crafted):
-    from torchrl_options.experiments.atari import _load_if
+    from torchrl_options.experiments.atari.utils import _load_if
 
     marker, write = crafted
     path = write("H1.partial.pt", lambda p: {"frames": p})

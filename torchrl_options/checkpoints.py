@@ -9,18 +9,21 @@ needs pickle is refused with an error naming it. Files written by older versions
 
 :func:`rng_state` and :func:`set_rng_state` capture and restore every global random state a run draws from
 (torch CPU and CUDA, numpy, Python's ``random``) as plain data, so that a run resumed from a checkpoint draws
-the same numbers as one that was never interrupted.
+the same numbers as one that was never interrupted; :func:`scoped_seed` seeds torch for a block and restores them
+all after it.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import pickle
 import random
 import re
 import sys
+import uuid
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +36,12 @@ __all__ = [
     "MissingFileError",
     "load_file",
     "save_file",
+    "atomic_replace",
     "tensordict_to_plain",
     "tensordict_from_plain",
     "rng_state",
     "set_rng_state",
+    "scoped_seed",
     "convert_file",
 ]
 
@@ -119,7 +124,8 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
 
 
 def save_file(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save`` through a temporary file and an atomic rename (a killed run never leaves half a file).
+    """``torch.save`` through a temporary file and an atomic rename (:func:`atomic_replace`: a killed run never
+    leaves half a file, and concurrent writers of one path never share a temporary file).
 
     ``obj`` must be plain data (see :func:`load_file`); TensorDicts go through :func:`tensordict_to_plain`.
 
@@ -130,10 +136,33 @@ def save_file(obj: Any, path: str | os.PathLike) -> None:
         >>> load_file(path)
         [1, 2]
     """
+    with atomic_replace(path) as tmp:
+        torch.save(obj, tmp)
+
+
+@contextlib.contextmanager
+def atomic_replace(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary file name next to ``path`` (unique to this call: process, thread and a random part) for the
+    block to write; when the block ends without an error, the file atomically replaces ``path``, otherwise it is
+    removed. Readers (and runs that share an output folder) see the old file or the whole new one, never a part.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "notes.txt")
+        >>> with atomic_replace(path) as tmp:
+        ...     _ = tmp.write_text("done")
+        >>> open(path).read(), os.listdir(os.path.dirname(path))
+        ('done', ['notes.txt'])
+    """
     path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}-{uuid.uuid4().hex[:12]}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
 
 
 def tensordict_to_plain(td: TensorDictBase) -> dict[str, Any]:
@@ -210,6 +239,35 @@ def set_rng_state(state: Mapping[str, Any]) -> None:
         cuda = list(state["cuda"])
         if len(cuda) == torch.cuda.device_count():
             torch.cuda.set_rng_state_all(cuda)
+
+
+@contextlib.contextmanager
+def scoped_seed(seed: int) -> Iterator[None]:
+    """``torch.manual_seed(seed)`` for the block only: afterwards every global random state (:func:`rng_state`:
+    torch CPU, CUDA when already initialised, numpy, Python) is what it was before, also after an error or an
+    interruption. A function that draws from the global generators (TorchRL's exploration modules and replay
+    buffers do) is then reproducible from ``seed`` without changing the random numbers of its caller.
+
+    Examples:
+        >>> import torch
+        >>> with scoped_seed(0):
+        ...     a = torch.rand(2)
+        >>> with scoped_seed(0):
+        ...     b = torch.rand(2)
+        >>> torch.equal(a, b)
+        True
+        >>> state = torch.get_rng_state()
+        >>> with scoped_seed(1):
+        ...     _ = torch.rand(3)
+        >>> torch.equal(state, torch.get_rng_state())
+        True
+    """
+    saved = rng_state()
+    try:
+        torch.manual_seed(seed)
+        yield
+    finally:
+        set_rng_state(saved)
 
 
 # ---------------------------------------------------------------------------------------------- legacy files

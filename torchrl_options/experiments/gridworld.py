@@ -34,7 +34,14 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
-from torchrl_options.checkpoints import load_file, save_file, tensordict_from_plain, tensordict_to_plain
+from torchrl_options.checkpoints import (
+    atomic_replace,
+    load_file,
+    save_file,
+    scoped_seed,
+    tensordict_from_plain,
+    tensordict_to_plain,
+)
 from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
 from torchrl_options.experiments.run_settings import check_run_settings
@@ -85,10 +92,6 @@ def cell_dir(out_dir: str | os.PathLike, *parts: str) -> Path:
     path = Path(out_dir, "cells", *parts)
     path.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    save_file(obj, path)
 
 
 # ------------------------------------------------------------------------------------------------ trajectories
@@ -182,12 +185,11 @@ def discover_cached(
         progress=progress, return_info=True, **_discovery_kwargs(discovery),
     )  # fmt: skip
     final = result.history[-1] if result.history else {}
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    save_options(
-        result.options, tmp, meta_control=result.meta_control,
-        metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed, "final": final},
-    )  # fmt: skip
-    os.replace(tmp, path)
+    with atomic_replace(path) as tmp:
+        save_options(
+            result.options, tmp, meta_control=result.meta_control,
+            metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed, "final": final},
+        )  # fmt: skip
     return result.options
 
 
@@ -212,9 +214,8 @@ def discover_hierarchy_cached(
         data, num_options, meta_control=meta_control, num_iterations=[discovery["num_iterations"]]
         + [upper] * (len(num_options) - 1), seed=seed, progress=progress, **_discovery_kwargs(discovery),
     )  # fmt: skip
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    save_hierarchy(hierarchy, tmp, metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed})
-    os.replace(tmp, path)
+    with atomic_replace(path) as tmp:
+        save_hierarchy(hierarchy, tmp, metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed})
     return hierarchy
 
 
@@ -302,7 +303,7 @@ def train_episodes(
         # the budget is only a bound: the callback stops at the target number of episodes
         agent.train(total_frames=10**12, callback=stop)
         if checkpoint is not None:
-            _atomic_save(agent.state_dict(include_buffer=include_buffer), checkpoint)
+            save_file(agent.state_dict(include_buffer=include_buffer), checkpoint)
         if on_episodes is not None:
             on_episodes(agent.log.episode_returns[reported:num_episodes], reported)
         reported = min(len(agent.log.episode_returns), num_episodes)
@@ -359,7 +360,7 @@ def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
             agent, _ = _pretrained_agent(cfg, cell.setting, cell.seed, progress)
             greedy = dict(setting["greedy"])
             data = greedy_trajectories(agent.actor, cfg["env"], greedy["num"], greedy["length"], 1000 * cell.seed + 7)
-            _atomic_save(tensordict_to_plain(data), traj_path)
+            save_file(tensordict_to_plain(data), traj_path)
             return data
 
     else:
@@ -386,9 +387,12 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
     and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
     """
-    cfg = dict(cfg)
+    with scoped_seed(cell.seed):  # the cell's random numbers come from its seed; the caller's are left as they were
+        return _run_cell(cell, dict(cfg))
+
+
+def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
     progress = bool(cfg.get("progress", False))
-    torch.manual_seed(cell.seed)
     setting = cfg["settings"][cell.setting]
     condition = cfg["conditions"][cell.condition]
     mode = condition["mode"]
@@ -592,8 +596,8 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
 
 
 def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | None:
-    """What a GridWorld recipe script does with its Hydra config: one torch thread (tiny networks), then the
-    recipe. Returns the summary table (``None`` when the run stopped early), for the script to print.
+    """What a GridWorld recipe script does with its Hydra config: the recipe, its console kept quiet if asked
+    (the script sets the thread count: one torch thread suits the tiny networks). Returns the summary table (``None`` when the run stopped early), for the script to print.
 
     Args:
         cfg: the recipe's config (an OmegaConf ``DictConfig`` or a plain mapping).
@@ -611,5 +615,4 @@ def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | 
         for name in ("torchrl", "torchrl_options"):
             logging.getLogger(name).setLevel(logging.WARNING)
         resume_logger.setLevel(logging.INFO)
-    torch.set_num_threads(1)
     return run_gridworld_recipe(cfg, title)

@@ -28,6 +28,18 @@ def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _interruption(err: BaseException | None) -> bool:
+    """Whether ``err`` is an interruption, or was raised while one unwound the stack (a context manager whose
+    ``__exit__`` fails on the way out, as tensordict's ``to_module`` inside TorchRL's losses can)."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__context__
+    return False
+
+
 def _finished_cells(out_dir: str | os.PathLike) -> int:
     path = Path(out_dir, "results.csv")
     if not path.exists():
@@ -42,9 +54,9 @@ def _finished_cells(out_dir: str | os.PathLike) -> int:
 
 @contextlib.contextmanager
 def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") -> Iterator[None]:
-    """Wraps a recipe's work: SIGTERM becomes an interruption like Ctrl-C; an interruption exits with status 130
-    and one line (``interrupted: N finished cells in <out_dir>/results.csv, ...; run the same command again to
-    resume.``); a refused setting (``ValueError``/``TypeError``) exits with status 2 and one line ``error: ...``.
+    """Wraps a recipe's work: SIGTERM becomes an interruption like Ctrl-C; an interruption (also one hidden by an
+    error raised on its way out) exits with status 130 and one line (``interrupted: N finished cells in
+    <out_dir>/results.csv, ...; run the same command again to resume.``); a refused setting (``ValueError``/``TypeError``) exits with status 2 and one line ``error: ...``.
 
     Args:
         out_dir: the recipe's output folder (named in the message).
@@ -65,7 +77,12 @@ def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") 
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         yield
-    except KeyboardInterrupt:
+    except BaseException as err:
+        if isinstance(err, SystemExit) or not _interruption(err):
+            if not isinstance(err, (ValueError, TypeError)) or os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
+                raise
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(2) from None
         where = os.fspath(out_dir) if out_dir is not None else "the output folder"
         n = _finished_cells(out_dir) if out_dir is not None else 0
         print(
@@ -74,11 +91,6 @@ def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") 
             file=sys.stderr,
         )
         raise SystemExit(130) from None
-    except (ValueError, TypeError) as err:
-        if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
-            raise
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

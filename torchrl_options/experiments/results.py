@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchrl_options.checkpoints import atomic_replace
 from torchrl_options.experiments.intervals import (
     interval_verdict,
     mean_interval,
@@ -117,15 +118,13 @@ class ResultsLog:
                 lines.append([setting, condition, int(seed), i, float(r), "" if frames is None else int(frames[i])])
         if not lines:
             return
-        tmp = self.path + ".tmp"
         with open(self.path, newline="") as f:
             existing = f.read()
-        with open(tmp, "w", newline="") as f:
+        with atomic_replace(self.path) as tmp, open(tmp, "w", newline="") as f:
             f.write(existing)
             csv.writer(f).writerows(lines)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, self.path)
 
     def returns(self, setting: str, condition: str) -> dict[int, list[float]]:
         """``{seed: [return of episode 0, 1, ...]}`` for one setting and condition."""

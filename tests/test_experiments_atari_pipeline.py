@@ -1,0 +1,40 @@
+"""The Atari pipeline's pieces that need no emulator: the lock that makes the cells of a seed share phases 1 and 2
+(a portable file lock, no ``fcntl``). The pipeline end to end is in ``tests/test_recipe_atari.py``."""
+import subprocess
+import sys
+import textwrap
+
+import pytest
+from filelock import Timeout
+
+from torchrl_options.experiments.atari import pipeline
+from torchrl_options.experiments.atari.pipeline import _seed_lock
+
+
+def test_pipeline_does_not_need_fcntl():
+    assert not hasattr(pipeline, "fcntl")
+
+
+def test_seed_lock_excludes_another_process(tmp_path):
+    """Another process (here a bare one, so that it starts fast) locking ``<seed_dir>/.lock`` waits."""
+    code = textwrap.dedent(f"""
+        from filelock import FileLock, Timeout
+        try:
+            FileLock({str(tmp_path / ".lock")!r}).acquire(timeout=0.1)
+        except Timeout:
+            print("waited")
+        else:
+            print("acquired")
+    """)
+    with _seed_lock(str(tmp_path)):
+        held = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    free = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert (held.strip(), free.strip()) == ("waited", "acquired")
+
+
+def test_seed_lock_excludes_another_holder_in_the_process(tmp_path):
+    with _seed_lock(str(tmp_path)):
+        with pytest.raises(Timeout):
+            _seed_lock(str(tmp_path)).acquire(timeout=0.05)
+    with _seed_lock(str(tmp_path)):
+        pass

@@ -1,0 +1,215 @@
+"""The settings of one Atari RAM cell (:class:`AtariConfig`), checked when they are read, and the recipe's Hydra
+schema (:func:`store_atari_config`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+__all__ = ["AtariConfig", "store_atari_config"]
+
+
+@dataclass
+class AtariConfig:
+    """Settings of one Atari RAM cell: the schema of the ``atari`` section of ``recipes/config/atari_ram.yaml``
+    (:func:`store_atari_config`).
+
+    Env: ``frame_skip``, ``repeat_action_probability``, ``noop_max``, ``episodic_life``, ``clip_rewards``,
+    ``max_episode_steps`` (see :func:`~torchrl_options.envs.atari.make_atari_ram_env`); ``ram_encoding`` is the
+    Q-network's input layer: ``"one_hot"`` (the paper's 128 x 256) or ``"bytes"``. The options networks read
+    ``bytes / 255``.
+
+    Phases: ``phase1_episodes`` (DQN, actions), ``num_demonstrations`` greedy trajectories of at most
+    ``demo_max_steps`` steps, DDO with ``num_options`` (``None``: the paper's count for the game) for
+    ``ddo_iterations`` iterations of ``ddo_m_steps`` optimizer steps each (1: the paper's Expectation-Gradient;
+    more: a generalised EM that fits the demonstrations much more closely for the same E-steps, see
+    :func:`~torchrl_options.discover_options`), then ``phase3_episodes`` for each condition.
+
+    DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
+    ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
+    ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` games
+    batched in a ``SerialEnv`` (``ParallelEnv`` with ``parallel``; one gymnasium ``SyncVectorEnv`` with
+    ``vector_env``, the fastest on few cores: see :func:`~torchrl_options.envs.atari.make_atari_ram_env`; the
+    greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the
+    same algorithm, several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
+
+    Greedy evaluation (off by default; the paper plots the mean return of rollouts of the learned policy): each
+    time a cell's episode count passes a multiple of ``eval_every``, ``eval_episodes`` episodes of the greedy
+    policy (options run as in training) on freshly seeded games, the same games for every condition and every
+    time (:meth:`~torchrl_options.agents.OptionsDQN.record_evaluation`); the cell's json file keeps them and
+    ``summary.md`` compares the conditions on them.
+
+    ``torch_threads``: torch's thread count for the cells, set by the recipe (in a serial sweep's process, else in
+    each pool or Ray worker instead of ``sweep.threads_per_worker``); ``None``: left as it is. The library itself
+    sets no thread count.
+
+    With batched games, episodes end several at a time and a phase stops at the first collector batch that
+    completes its count: phase 1 may then have run up to ``num_envs - 1`` episodes more than
+    ``phase1_episodes``. They are part of ``A``'s continuation (the same agent), so ``A``'s first phase-3 episodes
+    may come from phase 1's last batch; the other conditions start new agents.
+    """
+
+    # env
+    frame_skip: int = 4
+    repeat_action_probability: float = 0.0
+    noop_max: int = 30
+    episodic_life: bool = False
+    clip_rewards: bool = True
+    max_episode_steps: int | None = None
+    ram_encoding: str = "one_hot"
+    # phases
+    phase1_episodes: int = 1000
+    phase3_episodes: int = 4000
+    num_demonstrations: int = 100
+    demo_max_steps: int = 2000
+    num_options: int | None = None
+    options_num_cells: tuple[int, ...] = (64, 64, 64)
+    ddo_iterations: int = 500
+    ddo_batch_size: int | None = 20
+    ddo_lr: float = 1e-3
+    ddo_m_steps: int = 1
+    # DQN
+    hidden_sizes: tuple[int, ...] = (64, 64, 64)
+    gamma: float = 0.85
+    eps_init: float = 0.05
+    eps_end: float = 0.05
+    eps_annealing_frames: int = 1
+    lr: float = 1e-4
+    batch_size: int = 64
+    buffer_size: int = 100_000
+    learning_starts: int = 1000
+    frames_per_batch: int = 64
+    updates_per_batch: int = 4
+    hard_update_interval: int = 1000
+    double_dqn: bool = False
+    num_envs: int = 1
+    parallel: bool = False
+    vector_env: bool = False
+    device: str = "cpu"
+    fused_adam: bool = False
+    # greedy evaluation (the paper's measure): every eval_every episodes of a cell (0: off)
+    eval_every: int = 0
+    eval_episodes: int = 8
+    # outputs
+    checkpoint_every: int = 100
+    checkpoint_buffer: bool = True
+    option_frames: bool = True
+    option_frames_max_steps: int = 400
+    torch_threads: int | None = None
+
+    #: (minimum, allowed None) of every int setting, and [low, high] of every number: checked when the settings
+    #: are read, before any work starts
+    _INTS: ClassVar[dict[str, tuple[int, bool]]] = {
+        "frame_skip": (1, False), "noop_max": (0, False), "max_episode_steps": (1, True), "phase1_episodes": (1, False),
+        "phase3_episodes": (1, False), "num_demonstrations": (1, False), "demo_max_steps": (1, False),
+        "num_options": (1, True), "ddo_iterations": (0, False), "ddo_batch_size": (1, True), "batch_size": (1, False),
+        "buffer_size": (1, False), "learning_starts": (0, False), "frames_per_batch": (1, False),
+        "updates_per_batch": (0, False), "hard_update_interval": (1, False), "num_envs": (1, False),
+        "eval_every": (0, False), "eval_episodes": (1, False), "checkpoint_every": (0, False),
+        "option_frames_max_steps": (1, False), "torch_threads": (1, True), "eps_annealing_frames": (0, False),
+    }  # fmt: skip
+    _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {
+        "repeat_action_probability": (0.0, 1.0), "gamma": (0.0, 1.0), "eps_init": (0.0, 1.0), "eps_end": (0.0, 1.0),
+    }  # fmt: skip
+
+    def __post_init__(self) -> None:
+        from torchrl_options.discovery._validation import check_int
+        from torchrl_options.discovery.discover import _check_m_steps
+
+        _check_m_steps(self.ddo_m_steps, name="ddo_m_steps")  # refused when the settings are read, not after phase 1
+        for name, (minimum, allow_none) in self._INTS.items():
+            check_int(getattr(self, name), name, minimum=minimum, allow_none=allow_none)
+        for name, (lo, hi) in self._NUMBERS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+                raise ValueError(f"{name} must be a number in [{lo}, {hi}], got {value!r}.")
+        for name in ("lr", "ddo_lr"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+                raise ValueError(f"{name} must be a number > 0, got {value!r}.")
+        if self.ram_encoding not in ("one_hot", "bytes"):
+            raise ValueError(f"ram_encoding must be 'one_hot' or 'bytes', got {self.ram_encoding!r}.")
+        for name in ("hidden_sizes", "options_num_cells"):
+            sizes = getattr(self, name)
+            if not isinstance(sizes, (tuple, list)) or not sizes or not all(
+                isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+            ):
+                raise ValueError(f"{name} must be a non-empty list of ints >= 1, got {sizes!r}.")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown Atari settings: {sorted(unknown)}")
+        d = dict(d)
+        for key in ("options_num_cells", "hidden_sizes"):
+            if key in d and d[key] is not None:
+                d[key] = tuple(d[key])
+        return cls(**d)
+
+    #: fields that change how a cell runs (device, threads, pictures, greedy evaluation, which leaves training's
+    #: random numbers untouched, fused Adam, the same algorithm), not the episodes it records. ``checkpoint_every``
+    #: is not one of them: training restarts its episodes at each checkpoint (what makes resuming exact)
+    RUN_ONLY_FIELDS: ClassVar[tuple[str, ...]] = (
+        "device", "parallel", "torch_threads", "fused_adam", "checkpoint_buffer", "eval_every",
+        "eval_episodes", "option_frames", "option_frames_max_steps",
+    )  # fmt: skip
+
+    def cell_settings(self) -> dict[str, Any]:
+        """The settings that define what a cell computes: every field but :attr:`RUN_ONLY_FIELDS`. The recipe records
+        them in its ``out_dir`` and refuses to resume it with others
+        (:func:`~torchrl_options.experiments.run_settings.check_run_settings`).
+
+        Examples:
+            >>> settings = AtariConfig(device="cuda").cell_settings()
+            >>> settings["phase1_episodes"], "device" in settings
+            (1000, False)
+        """
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.RUN_ONLY_FIELDS}
+
+    def env_kwargs(self) -> dict[str, Any]:
+        return dict(
+            frame_skip=self.frame_skip,
+            repeat_action_probability=self.repeat_action_probability,
+            noop_max=self.noop_max,
+            episodic_life=self.episodic_life,
+            clip_rewards=self.clip_rewards,
+            max_episode_steps=self.max_episode_steps,
+        )
+
+    def dqn_settings(self) -> dict[str, Any]:
+        """The settings :class:`~torchrl_options.agents.OptionsDQNConfig` also has, by name (``lr``, ``gamma``,
+        ``batch_size``, ...): the agent's config is built from them, not copied field by field.
+
+        Examples:
+            >>> settings = AtariConfig(lr=0.01).dqn_settings()
+            >>> settings["lr"], "phase1_episodes" in settings
+            (0.01, False)
+        """
+        from torchrl_options.agents import OptionsDQNConfig
+
+        shared = {f.name for f in fields(OptionsDQNConfig)}
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
+
+    def options_for(self, game: str) -> int:
+        from torchrl_options.envs.atari import PAPER_NUM_OPTIONS
+
+        if self.num_options is not None:
+            return int(self.num_options)
+        return PAPER_NUM_OPTIONS.get(game, 4)
+
+
+def store_atari_config(group: str = "atari", name: str = "schema") -> None:
+    """Registers :class:`AtariConfig` in Hydra's ``ConfigStore`` as ``<group>/<name>``: the one schema of the
+    Atari recipe's ``atari`` section (its defaults and types), which ``recipes/config/atari_ram.yaml`` names in its
+    ``defaults`` and its presets only override. Needs ``hydra-core`` (the ``recipes`` extra).
+
+    Examples:
+        >>> from hydra.core.config_store import ConfigStore
+        >>> store_atari_config()
+        >>> ConfigStore.instance().load("atari/schema.yaml").node.phase1_episodes
+        1000
+    """
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group=group, name=name, node=AtariConfig)

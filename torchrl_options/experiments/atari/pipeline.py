@@ -1,0 +1,262 @@
+"""The Atari RAM experiment's resumable per-cell pipeline: phase 1 (DQN over actions), phase 2 (greedy
+demonstrations and DDO, shared by the conditions of a seed), phase 3 (each condition), with checkpoints that make a
+resumed cell the uninterrupted one, bit for bit. See :mod:`torchrl_options.experiments.atari`."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+
+from filelock import FileLock
+
+from torchrl_options.checkpoints import save_file, scoped_seed
+from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
+from torchrl_options.experiments.atari.config import AtariConfig
+from torchrl_options.experiments.atari.figures import write_option_frames
+from torchrl_options.experiments.atari.utils import _close, _greedy_rollouts, _load_if, _make_agent, _num_actions
+from torchrl_options.experiments.sweep import Cell, CellResult
+
+__all__ = ["run_atari_cell", "option_usage"]
+
+logger = logging.getLogger(__name__)
+
+
+def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
+    """Greedy evaluation when the cell's episode count (``offset`` + the agent's) has passed a new multiple of
+    ``eval_every`` since the agent's last evaluation."""
+    if not config.eval_every:
+        return
+    done = offset + len(agent.log.episode_returns)
+    last = offset + int(agent.log.evaluations[-1][0]) if agent.log.evaluations else offset
+    if done // config.eval_every > last // config.eval_every:
+        batch = config.num_envs if config.vector_env else 1  # evaluate() plays one env from the factory
+        episodes_per_game = -(-config.eval_episodes // batch)
+        agent.record_evaluation(config.eval_episodes, episodes_per_game * (config.max_episode_steps or 27_000))
+
+
+def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig, offset: int = 0) -> None:
+    """Trains ``agent`` until its log holds ``num_episodes`` episodes, checkpointing every ``checkpoint_every``
+    and evaluating (see :func:`_evaluate_if_due`; ``offset``: the cell's episodes before this agent's).
+
+    Training runs in chunks of ``checkpoint_every`` episodes, each a fresh :meth:`OptionsDQN.train` (new
+    episodes, envs seeded from the frame count) ending with a checkpoint that holds every random state (and the
+    replay buffer with ``checkpoint_buffer``): a run resumed from the checkpoint is the uninterrupted run, bit for
+    bit."""
+    while len(agent.log.episode_returns) < num_episodes:
+        start = len(agent.log.episode_returns)
+        target = min(start + config.checkpoint_every, num_episodes) if config.checkpoint_every else num_episodes
+
+        def callback(agent, batch, target=target):
+            _evaluate_if_due(agent, config, offset)
+            return len(agent.log.episode_returns) >= target
+
+        agent.train(total_frames=10**12, callback=callback)
+        if config.checkpoint_every and len(agent.log.episode_returns) < num_episodes:
+            save_file(agent.state_dict(include_buffer=config.checkpoint_buffer), partial_path)
+
+
+def _seed_lock(seed_dir: str) -> FileLock:
+    """The lock of a seed's shared phases 1 and 2 (``<seed_dir>/.lock``): across processes and machines sharing
+    the folder, on POSIX and Windows alike; the cells of a seed wait for the first one's checkpoint and options."""
+    return FileLock(os.path.join(seed_dir, ".lock"))
+
+
+def _phase1(game: str, config: AtariConfig, seed: int, seed_dir: str):
+    path = os.path.join(seed_dir, "phase1.pt")
+    agent = _make_agent(game, config, seed, "actions")
+    if not _load_if(agent, path):
+        partial_path = os.path.join(seed_dir, "phase1.partial.pt")
+        _load_if(agent, partial_path)
+        t0 = time.time()
+        _train_episodes(agent, config.phase1_episodes, partial_path, config)
+        save_file(agent.state_dict(include_buffer=config.checkpoint_buffer), path)
+        logger.info("%s seed %d: phase 1 done in %.0fs", game, seed, time.time() - t0)
+        if os.path.exists(partial_path):
+            os.remove(partial_path)
+    return agent, path
+
+
+def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
+    from torchrl_options.discovery import discover_options, load_options, save_options
+
+    path = os.path.join(seed_dir, "options.pt")
+    if os.path.exists(path):
+        options, _, metadata = load_options(path, with_meta_control=True)
+        return options, metadata
+    t0 = time.time()
+    demos = _greedy_rollouts(agent, game, config, seed, config.num_demonstrations, config.demo_max_steps)
+    demo_frames = int(sum(t.numel() for t in demos))
+    k = config.options_for(game)
+    result = discover_options(
+        [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated")) for t in demos],
+        num_options=k,
+        num_actions=_num_actions(game, config),
+        num_cells=list(config.options_num_cells),
+        activation="tanh",
+        num_iterations=config.ddo_iterations,
+        batch_size=config.ddo_batch_size,
+        lr=config.ddo_lr,
+        m_steps=config.ddo_m_steps,
+        restarts=1,  # the paper's protocol: one start, every iteration run
+        tol=None,
+        device=config.device,
+        seed=seed,
+        progress=False,
+        return_info=True,
+    )
+    metadata = {
+        "game": game,
+        "num_options": k,
+        "demo_frames": demo_frames,
+        "demo_returns": [float(t["next", "reward"].sum()) for t in demos],
+        "log_likelihood_per_step": result.final_log_likelihood_per_step,
+        "option_duration": result.history[-1].get("option_duration", float("nan")) if result.history else float("nan"),
+        "seconds": time.time() - t0,
+    }
+    options = result.options.cpu()
+    save_options(options, path, metadata=metadata)
+    logger.info("%s seed %d: DDO done, %s", game, seed, metadata)
+    return options, metadata
+
+
+def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
+    """How much an agent over actions + options used its options, from the decisions in its replay buffer.
+
+    Reads the decisions stored from position ``start`` on (to skip decisions copied in by a warm start), up to
+    the buffer's capacity, leaving out the one-step transitions of steps inside options (``"intra_option"``, with
+    ``OptionsDQNConfig.intra_option_actions``). A decision is an option when its action index is ``num_actions`` or
+    more.
+
+    Returns:
+        ``option_decision_share`` (fraction of decisions that started an option), ``option_step_share``
+        (fraction of env steps spent inside options) and ``mean_option_steps`` (mean steps per option run;
+        NaN when no option ran).
+
+    Examples:
+        >>> import torch
+        >>> from types import SimpleNamespace
+        >>> from tensordict import TensorDict
+        >>> buf = TensorDict(action=torch.tensor([0, 3, 1, 4]), steps_to_next_obs=torch.tensor([[1], [5], [1], [3]]),
+        ...                  batch_size=[4])
+        >>> option_usage(SimpleNamespace(replay_buffer=buf), num_actions=3)
+        {'option_decision_share': 0.5, 'option_step_share': 0.8, 'mean_option_steps': 4.0}
+    """
+    n = len(agent.replay_buffer)
+    if n <= start:
+        return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
+    data = agent.replay_buffer[start:n]
+    if "intra_option" in data.keys():
+        data = data[~data.get("intra_option").reshape(-1)]
+    is_option = data.get("action").reshape(-1) >= num_actions
+    steps = data.get("steps_to_next_obs").reshape(-1).float()
+    option_steps = steps[is_option]
+    return {
+        "option_decision_share": float(is_option.float().mean()),
+        "option_step_share": float(option_steps.sum() / steps.sum()),
+        "mean_option_steps": float(option_steps.mean()) if option_steps.numel() else float("nan"),
+    }
+
+
+def run_atari_cell(cell: Cell, *, config: AtariConfig | dict, out_dir: str) -> CellResult:
+    """Runs one ``(game, condition, seed)`` cell of the Atari RAM experiment, resuming from its checkpoints.
+
+    Args:
+        cell (Cell): ``setting`` is the game (``"Seaquest"``), ``condition`` one of :data:`CONDITIONS`: ``"A"``,
+            ``"A0"``, ``"H1"``, and ``"H1"`` followed by any of ``w``, ``g``, ``i``, ``s`` (see the module docstring).
+
+    Keyword Args:
+        config (AtariConfig or dict): the settings.
+        out_dir (str): the experiment's output directory (checkpoints go to ``<out_dir>/<game>/seed<s>/``).
+
+    Returns:
+        The phase-1 then phase-3 episode returns, and cumulative frames (see the module docstring).
+
+    The cell's random numbers come from its seed alone (each agent seeds torch when it is made); the caller's
+    global random states are restored when the cell ends (:func:`~torchrl_options.checkpoints.scoped_seed`), and
+    the thread count is the caller's (the recipe sets ``AtariConfig.torch_threads``).
+    """
+    if isinstance(config, dict):
+        config = AtariConfig.from_dict(config)
+    if cell.condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {CONDITIONS}, got {cell.condition!r}.")
+    with scoped_seed(cell.seed):  # every random state of the caller is left as it was
+        return _run_cell(cell, config, out_dir)
+
+
+def _run_cell(cell: Cell, config: AtariConfig, out_dir: str) -> CellResult:
+    game, seed = cell.setting, cell.seed
+    seed_dir = os.path.join(out_dir, game, f"seed{seed}")
+    os.makedirs(seed_dir, exist_ok=True)
+    t0 = time.time()
+    with _seed_lock(seed_dir):
+        agent, _ = _phase1(game, config, seed, seed_dir)
+        options, metadata = _phase2(game, config, seed, seed_dir, agent)
+    n1 = config.phase1_episodes
+    p1_returns = list(agent.log.episode_returns[:n1])
+    p1_frames = list(agent.log.episode_end_frames[:n1])
+    p1_total = p1_frames[-1] if p1_frames else 0
+    total = n1 + config.phase3_episodes
+    partial_path = os.path.join(seed_dir, f"{cell.condition}.partial.pt")
+    phase1_agent = agent
+    if cell.condition == "A":
+        # the baseline continues phase 1's DQN (networks, optimizer, epsilon, replay buffer) with actions only
+        _load_if(agent, partial_path)
+        _train_episodes(agent, total, partial_path, config)
+        returns = list(agent.log.episode_returns[:total])
+        frames = list(agent.log.episode_end_frames[:total])
+        phase3 = {}
+    elif cell.condition == "A0":
+        # control: actions only from a reset Q-function, as H1 but without the options
+        agent = _make_agent(game, config, seed + 1000, "actions")
+        _load_if(agent, partial_path)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config, offset=n1)
+        returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
+        frames = p1_frames + [p1_total + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
+        phase3 = {}
+    else:
+        k = metadata["num_options"]
+        flags = _option_flags(cell.condition)
+        agent = _make_agent(game, config, seed + 1000, "both", options=options, num_options=k,
+                            greedy_options=flags.greedy, intra_option_actions=flags.intra,
+                            option_suffixes=flags.suffixes)
+        copied = 0
+        if flags.warm:
+            # phase 1's networks (output layer widened) and replay buffer; a partial checkpoint then restores
+            # the state reached since (its buffer too with checkpoint_buffer; otherwise the copied one stands in)
+            agent.warm_start_from(phase1_agent)
+            copied = len(agent.replay_buffer)
+        _load_if(agent, partial_path)
+        _train_episodes(agent, config.phase3_episodes, partial_path, config, offset=n1)
+        offset = p1_total + int(metadata["demo_frames"])
+        returns = p1_returns + list(agent.log.episode_returns[: config.phase3_episodes])
+        frames = p1_frames + [offset + f for f in agent.log.episode_end_frames[: config.phase3_episodes]]
+        num_actions = int(agent.env.full_action_spec_unbatched["action"].n) - k  # augmented space: A + K
+        phase3 = {"num_options": k, **option_usage(agent, num_actions, start=copied)}
+        if config.option_frames and seed == 0 and cell.condition == "H1":
+            try:
+                write_option_frames(phase1_agent, options, game, config, seed,
+                                    os.path.join(out_dir, "option_frames", game))
+            except Exception as err:  # frames are an illustration: never lose a finished cell to them
+                logger.warning("option frames for %s failed: %s", game, err)
+    for a in {id(agent): agent, id(phase1_agent): phase1_agent}.values():
+        _close(a)  # a ParallelEnv's workers would keep the process alive
+    if os.path.exists(partial_path):
+        os.remove(partial_path)
+    info = {"seconds": time.time() - t0, "phase1_frames": p1_total, "demo_frames": metadata.get("demo_frames"), **phase3}
+    if config.eval_every:
+        info["evaluations"] = _cell_evaluations(cell.condition, phase1_agent, agent, n1, config.eval_every)
+    with open(os.path.join(seed_dir, f"{cell.condition}.json"), "w") as f:
+        json.dump(info, f)
+    return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames], info=info)
+
+
+def _cell_evaluations(condition: str, phase1_agent, agent, n1: int, every: int) -> list[list[float]]:
+    """The cell's greedy evaluations as ``[point, episodes, mean return]``: ``point`` is the multiple of ``every``
+    that triggered it (comparable across conditions), ``episodes`` the cell's episode count then."""
+    if condition == "A":  # one agent through both phases
+        rows = [(e[0], e[2]) for e in agent.log.evaluations]
+    else:
+        rows = [(e[0], e[2]) for e in phase1_agent.log.evaluations if e[0] // every <= n1 // every]
+        rows += [(n1 + e[0], e[2]) for e in agent.log.evaluations]
+    return [[int(ep) // every * every, int(ep), float(mean)] for ep, mean in rows]
