@@ -284,6 +284,21 @@ class ConditionSummary:
     reached: int
 
 
+def _return_curves(
+    log: ResultsLog | Iterable[dict],
+) -> tuple[dict[tuple[str, str], dict[int, list[float]]], list[tuple[str, str]]]:
+    """Per ``(setting, condition)``, each seed's returns in episode order, and those keys in sorted order."""
+    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
+    curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    order: list[tuple[str, str]] = []
+    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+        key = (r["setting"], r["condition"])
+        if key not in order:
+            order.append(key)
+        curves[key][r["seed"]].append(r["return"])
+    return curves, order
+
+
 def summarize(
     log: ResultsLog | Iterable[dict],
     *,
@@ -309,14 +324,7 @@ def summarize(
         >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
         | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [2, 10] | 1/1 |
     """
-    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
-    curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
-    order: list[tuple[str, str]] = []
-    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
-        key = (r["setting"], r["condition"])
-        if key not in order:
-            order.append(key)
-        curves[key][r["seed"]].append(r["return"])
+    curves, order = _return_curves(log)
     targets = {}
     for (setting, condition), seeds in curves.items():
         if condition == baseline:
@@ -402,14 +410,7 @@ def compare_to_baseline(
         >>> [(c.condition, c.difference[0], c.verdict, c.num_seeds) for c in compare_to_baseline(rows)]
         [('H1u', 0.5, 'ahead', 3)]
     """
-    rows = log.rows() if isinstance(log, ResultsLog) else list(log)
-    curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
-    order: list[tuple[str, str]] = []
-    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
-        key = (r["setting"], r["condition"])
-        if key not in order:
-            order.append(key)
-        curves[key][r["seed"]].append(r["return"])
+    curves, order = _return_curves(log)
     out = []
     for setting, condition in order:
         if condition == baseline or (setting, baseline) not in curves:
