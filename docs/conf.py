@@ -6,7 +6,9 @@ Pages are Markdown (MyST); the API reference comes from the Google docstrings (a
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
+import pkgutil
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -89,7 +91,64 @@ def _other_pages() -> str:
     return "```{toctree}\n:maxdepth: 1\n:caption: Notes and more results\n\n" + "\n".join(names) + "\n```\n"
 
 
+def _is_data(obj) -> bool:
+    return not (inspect.isclass(obj) or inspect.isroutine(obj) or inspect.ismodule(obj))
+
+
+def _attribute_docs(package_name: str) -> dict[str, list[str]]:
+    """The ``#:`` comments and docstrings of module-level names, from the modules of a (sub)package."""
+    from sphinx.pycode import ModuleAnalyzer
+
+    package = importlib.import_module(package_name)
+    names = [package_name]
+    if hasattr(package, "__path__"):
+        names += [info.name for info in pkgutil.walk_packages(package.__path__, package_name + ".")]
+    docs: dict[str, list[str]] = {}
+    for name in names:
+        try:
+            found = ModuleAnalyzer.for_module(name).find_attr_docs()
+        except Exception:  # noqa: BLE001 - a module without source: nothing to collect
+            continue
+        for (scope, attr), lines in found.items():
+            if scope == "":
+                docs.setdefault(attr, list(lines))
+    return docs
+
+
+# Constants re-exported by a subpackage are documented where they are defined (a ``#:`` comment or docstring in a
+# submodule), which autodoc does not read when it documents the subpackage: they are listed here instead.
+_DATA_DOCS: dict[str, list[str]] = {}
+
+
+def _data_section(module_name: str) -> str:
+    from sphinx.pycode import ModuleAnalyzer
+
+    module = importlib.import_module(module_name)
+    own = {attr for (scope, attr) in ModuleAnalyzer.for_module(module_name).find_attr_docs() if scope == ""}
+    docs = _attribute_docs(module_name)
+    lines = []
+    for name in getattr(module, "__all__", ()):
+        value = getattr(module, name)
+        if not _is_data(value) or name in own:
+            continue
+        _DATA_DOCS[f"{module_name}.{name}"] = docs.get(name, [])
+        lines.append(f".. autodata:: {module_name}.{name}")
+        if len(repr(value)) > 100:
+            lines.append("   :no-value:")
+        lines.append("")
+    if not lines:
+        return ""
+    return "\n## Constants\n\n```{eval-rst}\n" + "\n".join(lines) + "```\n"
+
+
+def _data_docstring(app, what, name, obj, options, lines):
+    if what == "data" and name in _DATA_DOCS:  # not the docstring of the value's type (dict, tuple, ...)
+        lines[:] = _DATA_DOCS[name]
+
+
 def _fill_markers(app, docname, source):
+    if docname.startswith("api/") and docname != "api/index":
+        source[0] += _data_section("torchrl_options." + docname[len("api/"):])
     if docname == "api/index":
         source[0] = source[0].replace("<!-- top-level names -->", _top_level_table())
     if docname == "index":
@@ -98,3 +157,4 @@ def _fill_markers(app, docname, source):
 
 def setup(app):
     app.connect("source-read", _fill_markers)
+    app.connect("autodoc-process-docstring", _data_docstring)

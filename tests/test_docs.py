@@ -8,9 +8,11 @@
 
 Code blocks marked ``bash`` (commands) are shown, not run.
 """
+import importlib
 import importlib.util
 import os
 import pathlib
+import pkgutil
 import re
 import subprocess
 import sys
@@ -80,6 +82,22 @@ def test_readme_is_short_and_links_exist():
         assert (ROOT / target).exists(), f"README links to {target}, which does not exist"
 
 
+def load_conf():
+    """``docs/conf.py`` as a module (it imports nothing from Sphinx at its top)."""
+    spec = importlib.util.spec_from_file_location("docs_conf", DOCS / "conf.py")
+    conf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(conf)
+    return conf
+
+
+def test_api_reference_covers_every_subpackage():
+    import torchrl_options
+
+    public = {f"torchrl_options.{m.name}" for m in pkgutil.iter_modules(torchrl_options.__path__)
+              if not m.name.startswith("_")}
+    assert public <= set(load_conf().API_MODULES), public - set(load_conf().API_MODULES)
+
+
 _MISSING = [m for m in ("sphinx", "myst_parser", "furo") if importlib.util.find_spec(m) is None]
 
 
@@ -92,8 +110,14 @@ def test_docs_build(tmp_path):
                str(tmp_path / "doctrees"), str(DOCS), str(tmp_path / "html")]
     result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
     assert result.returncode == 0, result.stdout[-5000:] + result.stderr[-10000:]
-    api = (tmp_path / "html" / "api" / "index.html").read_text()
+    html = tmp_path / "html" / "api"
+    index = (html / "index.html").read_text()
     import torchrl_options
 
     for name in torchrl_options.__all__:  # every top-level name is linked to its documentation
-        assert re.search(rf'href="[\w.]+\.html#torchrl_options\.[\w.]+\.{name}"', api), name
+        assert re.search(rf'href="[\w.]+\.html#torchrl_options\.[\w.]+\.{name}"', index), name
+    for module_name in load_conf().API_MODULES:  # every public name of every subpackage has an entry
+        module = importlib.import_module(module_name)
+        page = (html / f"{module_name.split('.', 1)[1]}.html").read_text()
+        missing = [n for n in getattr(module, "__all__", ()) if f'id="{module_name}.{n}"' not in page]
+        assert not missing, f"{module_name}: no API entry for {missing}"
