@@ -62,6 +62,10 @@ def test_two_rooms_recipe_resumes(tmp_path):
     assert sorted(ran) == sorted(["supervised-A-seed0", "supervised-O-seed0", "supervised-AO-seed0"])  # A not redone
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "O", "AO")])
     assert [p.name for p in (out / "pictures").glob("*.png")] == ["supervised-seed0-K2-uniform.png"]
+    import cv2  # the options' video: 2 options x 4 starts (pictures.num_starts), a frame per visited cell
+
+    video = cv2.VideoCapture(str(out / "pictures" / "supervised-seed0-K2-uniform.avi"))
+    assert video.isOpened() and 2 * 4 * 2 <= video.get(cv2.CAP_PROP_FRAME_COUNT) <= 2 * 4 * 31
     # resuming with other settings is refused (the finished cells were made with the old ones), naming them;
     # other seeds or conditions, or how cells run, are not settings of the cells
     with pytest.raises(ValueError, match=r"dqn.lr: [0-9.e-]+ there, 0.5 now.*episodes: \d+ there, 7 now"):

@@ -566,30 +566,42 @@ def write_summary(
 
 
 def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
-    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6), and
+    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6, with
+    titles, axes, legend, colour bar and caption) and, unless ``pictures.video`` is false, its video ``.avi`` (each
+    option run from a few starts, :func:`~torchrl_options.experiments.option_pictures.option_video`); and
     ``pictures/<setting>-seed<seed>-hierarchy-....png`` for every hierarchy (figure 1: level-2 options coloured by
     the level-1 option running)."""
-    from torchrl_options.experiments.option_pictures import draw_hierarchy, draw_options
+    from torchrl_options.experiments.option_pictures import draw_hierarchy, draw_options, option_video
 
     pictures_cfg = dict(cfg.get("pictures") or {})
     out = Path(cfg["out_dir"], "pictures")
     out.mkdir(parents=True, exist_ok=True)
+    num_starts, max_length = int(pictures_cfg.get("num_starts", 3)), int(pictures_cfg.get("max_length", 30))
     written = []
     for setting in cfg["settings_to_run"]:
         folder = Path(cfg["out_dir"], "cells", f"{setting}-seed{seed}")
         for path in sorted(folder.glob("options-*.pt")):
-            target = Path(out, f"{setting}-seed{seed}-{path.stem.removeprefix('options-')}.png")
+            stem = f"{setting}-seed{seed}-{path.stem.removeprefix('options-')}"
+            options = load_options(path)
+            target = Path(out, f"{stem}.png")
             draw_options(
-                load_options(path), cfg["env"], target, target_pos=pictures_cfg.get("target"),
-                num_starts=int(pictures_cfg.get("num_starts", 3)), max_length=int(pictures_cfg.get("max_length", 30)),
-                seed=seed,
+                options, cfg["env"], target, target_pos=pictures_cfg.get("target"), num_starts=num_starts,
+                max_length=max_length, seed=seed, title=f"Options discovered by DDO: {setting} setting, seed {seed}, "
+                f"{path.name} ({cfg['env'].get('grid', 'GridWorld')})",
             )  # fmt: skip
             written.append(target)
+            if pictures_cfg.get("video", True):
+                video = Path(out, f"{stem}.avi")
+                option_video(
+                    options, cfg["env"], video, target_pos=pictures_cfg.get("target"), num_starts=num_starts,
+                    max_length=max_length, seed=seed,
+                )  # fmt: skip
+                written.append(video)
         for path in sorted(folder.glob("hierarchy-*.pt")):
             target = Path(out, f"{setting}-seed{seed}-{path.stem}.png")
             draw_hierarchy(
-                load_hierarchy(path), cfg["env"], target, num_starts=int(pictures_cfg.get("num_starts", 3)),
-                max_length=2 * int(pictures_cfg.get("max_length", 30)), seed=seed,
+                load_hierarchy(path), cfg["env"], target, num_starts=num_starts, max_length=2 * max_length, seed=seed,
+                title=f"Option hierarchy discovered by DDO: {setting} setting, seed {seed}, {path.name}",
             )  # fmt: skip
             written.append(target)
     return written
