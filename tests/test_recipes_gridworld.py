@@ -49,18 +49,36 @@ def _check_outputs(out, cells):
     return rows
 
 
-def test_two_rooms_recipe_resumes(tmp_path):
+def test_two_rooms_recipe_resumes(tmp_path, monkeypatch):
     recipe = _load("two_rooms")
     out = tmp_path / "two_rooms"
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")  # the recipe writes under out_dir only
     assert recipe.run(_cfg("two_rooms", out, "stop_after_cells=1")) is None  # interrupted after one cell
     ran = (out / "cells" / "ran.txt").read_text().split()
     assert ran == ["supervised-A-seed0"]
     assert not (out / "summary.md").exists()
+    first_log = (out / "two_rooms.log").read_text()
+    assert "Two rooms: 1 cells to run" in first_log and "cell supervised-A-seed0 finished" in first_log
     summary = recipe.run(_cfg("two_rooms", out))
     assert "episodes to a 50-episode mean return" in summary
     ran = (out / "cells" / "ran.txt").read_text().split()
     assert sorted(ran) == sorted(["supervised-A-seed0", "supervised-O-seed0", "supervised-AO-seed0"])  # A not redone
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "O", "AO")])
+    # the log file holds the log: the resumed run names the cells it skips, the cells run, the summary
+    log = (out / "two_rooms.log").read_text()
+    assert "1 finished cells skipped (supervised-A-seed0)" in log and "cell supervised-AO-seed0 finished" in log
+    assert "summary:" in log and "| supervised | AO |" in log
+    # rows in the recipe's order of its conditions (A, O, AO), not alphabetical
+    rows = [line.split("|")[2].strip() for line in summary.splitlines() if line.startswith("| supervised |")]
+    assert rows[:3] == ["A", "O", "AO"]
+    # finished cells keep what a resume needs, not their replay buffers
+    from torchrl_options.checkpoints import load_file
+
+    for cell in ("A", "O", "AO"):
+        state = load_file(out / "cells" / f"supervised-{cell}-seed0" / "dqn.pt")
+        assert "replay_buffer" not in state and state["log"]["episode_returns"]
+    assert list((tmp_path / "cwd").iterdir()) == []
     assert [p.name for p in (out / "pictures").glob("*.png")] == ["supervised-seed0-K2-uniform.png"]
     import cv2  # the options' video: 2 options x 4 starts (pictures.num_starts), a frame per visited cell
 
@@ -74,6 +92,48 @@ def test_two_rooms_recipe_resumes(tmp_path):
                            "backend=local", "summary.final_window=3")) is None  # fmt: skip
     assert recipe.run(_cfg("two_rooms", out, "dqn.lr=0.5", "allow_changed_settings=true", "stop_after_cells=0",
                            "seeds=[5]")) is None  # fmt: skip
+
+
+def test_ddo_progress_bar_names_the_run(tmp_path, monkeypatch):
+    """The DDO bar says which setting, seed, number of options and meta-control it fits."""
+    import torchrl_options.experiments.gridworld as gridworld
+    from omegaconf import OmegaConf
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_discover(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(gridworld, "discover_options", fake_discover)
+    cfg = OmegaConf.to_container(_cfg("four_rooms", tmp_path), resolve=True)
+    monkeypatch.setattr(gridworld, "_trajectories", lambda cfg, seed: None)
+    with pytest.raises(Stop):
+        gridworld.cell_options(cfg, gridworld.Cell("supervised", "H1s", 2), progress=True)
+    assert seen["desc"] == "DDO supervised seed 2: 4 options, learned meta-control" and seen["progress"]
+
+
+def test_quickstart_writes_under_its_out_dir(tmp_path, monkeypatch, capsys):
+    import functools
+
+    recipe = _load("quickstart")
+    # a short discovery: this test is about where it writes and what it prints, not about the options
+    monkeypatch.setattr(recipe, "discover_options", functools.partial(recipe.discover_options, num_iterations=3,
+                                                                      restarts=1))  # fmt: skip
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    result = recipe.main([f"out_dir={tmp_path / 'qs'}"])
+    assert sorted(p.name for p in (tmp_path / "qs").iterdir()) == ["options.pt"]
+    assert list((tmp_path / "cwd").iterdir()) == []
+    printed = capsys.readouterr().out
+    assert "option 0: walks" in printed and "option 1: walks" in printed and "used at" in printed
+    assert f"Segmentation: {result['accuracy']:.1%} of the steps labelled with their planted option" in printed
+    assert f"saved the options to {tmp_path / 'qs' / 'options.pt'}" in printed
+    with pytest.raises(ValueError, match="quickstart takes out_dir=PATH .*got 'outdir=x'"):
+        recipe.main(["outdir=x"])
 
 
 def test_three_rooms_recipe(tmp_path):

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import os
 from collections import defaultdict
+from collections.abc import Sequence
 
 import numpy as np
 
 from torchrl_options.experiments.aggregates import Aggregates, METHOD as AGGREGATE_METHOD
 from torchrl_options.experiments.intervals import METHOD as INTERVAL_METHOD, t_intervals
-from torchrl_options.experiments.results import ResultsLog, smooth
+from torchrl_options.experiments.results import condition_rank, ResultsLog, smooth
 
 __all__ = ["plot_aggregates", "plot_curves"]
 
@@ -21,11 +22,13 @@ def plot_curves(
     smooth_window: int = 50,
     confidence: float = 0.95,
     title: str | None = None,
+    condition_order: Sequence[str] | None = None,
 ):
     """Writes ``curves.png``: one panel per setting, per condition the mean (over seeds) of the smoothed returns
     with a Student-t interval over seeds at each episode
     (:func:`~torchrl_options.experiments.intervals.mean_interval`). The legend names the interval and each
-    condition's number of seeds; a condition with one seed gets no band. A caption under the panels says what the
+    condition's number of seeds (conditions in ``condition_order``, :func:`~torchrl_options.experiments.results.
+    condition_rank`); a condition with one seed gets no band. A caption under the panels says what the
     lines and bands are. Returns the matplotlib ``Figure`` (written, not shown; it holds no pyplot state).
 
     Needs matplotlib (the ``recipes`` extra).
@@ -43,7 +46,8 @@ def plot_curves(
     """
     rows = log.rows()
     data: dict[str, dict[str, dict[int, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
-    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+    rank = condition_rank(condition_order)
+    for r in sorted(rows, key=lambda r: (r["setting"], rank(r["condition"]), r["seed"], r["episode"])):
         data[r["setting"]][r["condition"]][r["seed"]].append(r["return"])
     settings = list(data)
     pct = round(100 * confidence)
