@@ -136,6 +136,20 @@ def test_quickstart_writes_under_its_out_dir(tmp_path, monkeypatch, capsys):
         recipe.main(["outdir=x"])
 
 
+def test_time_claims_agree():
+    """The config, the scale and the recipe's docstring state the same time for a default four-rooms run."""
+    import re
+
+    config = (RECIPES / "config" / "four_rooms.yaml").read_text().splitlines()
+    claims = [
+        next(line for line in config if "default scale" in line),
+        (RECIPES / "config" / "scale" / "default.yaml").read_text().splitlines()[0],
+        next(line for line in (RECIPES / "four_rooms.py").read_text().splitlines() if "# default scale" in line),
+    ]
+    minutes = {re.search(r"(\d+) min", line).group(1) for line in claims}
+    assert minutes == {"3"}, claims
+
+
 def test_three_rooms_recipe(tmp_path):
     out = tmp_path / "three_rooms"
     _load("three_rooms").run(_cfg("three_rooms", out))

@@ -27,9 +27,10 @@ def plot_curves(
     """Writes ``curves.png``: one panel per setting, per condition the mean (over seeds) of the smoothed returns
     with a Student-t interval over seeds at each episode
     (:func:`~torchrl_options.experiments.intervals.mean_interval`). The legend names the interval and each
-    condition's number of seeds (conditions in ``condition_order``, :func:`~torchrl_options.experiments.results.
-    condition_rank`); a condition with one seed gets no band. A caption under the panels says what the
-    lines and bands are. Returns the matplotlib ``Figure`` (written, not shown; it holds no pyplot state).
+    condition's number of seeds, conditions in ``condition_order``
+    (:func:`~torchrl_options.experiments.results.condition_rank`); a condition with one seed gets no band. A
+    caption under the panels says what the lines and bands are. Returns the matplotlib ``Figure`` (written, not
+    shown; it holds no pyplot state).
 
     Needs matplotlib (the ``recipes`` extra).
 
@@ -55,8 +56,8 @@ def plot_curves(
     counts = "/".join(str(n) for n in seed_counts) or "0"
     caption = (
         f"Each line: the mean over seeds of the episode return smoothed by a running mean over {smooth_window} "
-        f"episodes ({counts} seeds per condition). Shaded bands: the {pct}% {INTERVAL_METHOD} of that mean over "
-        "the seeds at each episode (no band with one seed)."
+        f"episodes ({counts} seeds per condition). Shaded bands: the {pct}% {INTERVAL_METHOD}, at each episode "
+        "(no band with one seed)."
     )
     fig, _, axes = _captioned_figure(1, max(len(settings), 1), (6, 4), caption)
     for ax, setting in zip(axes[0], settings):
