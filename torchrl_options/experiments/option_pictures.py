@@ -3,7 +3,10 @@
 Figure 1 draws each option's trajectories from random initial states until it terminates, one colour per option;
 figure 6 draws an option's termination probability over the grid in red. :func:`draw_options` puts both in one
 PNG: a first panel with every option's trajectories, then one panel per option with its termination probability
-``sigmoid(termination_logits)`` at every free cell (for a fixed target) under its own trajectories.
+``sigmoid(termination_logits)`` at every free cell (for a fixed target) under its own trajectories; titles, axes
+(the map's columns and rows), a legend, a colour bar and a caption say what the panels show.
+:func:`option_video` plays the same trajectories as a captioned video (OpenCV), and :func:`draw_hierarchy`
+draws the options of every level of a hierarchy. The figures need matplotlib (the ``recipes`` extra).
 """
 from __future__ import annotations
 
