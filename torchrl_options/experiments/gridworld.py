@@ -260,6 +260,7 @@ def make_agent(
             env = env.append_transform(executor.clone())
         return env
 
+    torch.manual_seed(seed)  # the recipe seeds the global generator (network init, exploration); the agent does not
     return OptionsDQN(factory, _dqn_config(cfg, mode, seed), options=options, num_options=num_options)
 
 
