@@ -167,9 +167,13 @@ def test_four_rooms_recipe_command_line(tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert "| supervised | H1u |" in result.stdout
-    cells = [(s, c, 0) for s in ("supervised", "exploration") for c in ("A", "H1u", "H1s")]
+    cells = [(s, c, 0) for s in ("supervised", "exploration") for c in ("A", "H1u", "H2u")]  # scale=tiny
     _check_outputs(out, cells)
     assert (out / ".hydra" / "config.yaml").exists()  # hydra.run.dir is the output dir
+    assert list(tmp_path.iterdir()) == [out]  # nothing written outside out_dir
+    log = (out / "four_rooms.log").read_text()  # the package's log, not Hydra's (empty) one
+    assert "Four rooms: 6 cells to run" in log and "summary:" in log
+    assert "DDO supervised seed 0: 4 options, uniform meta-control" not in result.stdout  # progress=false
     # a second run finds every cell finished and only rewrites the outputs
     again = subprocess.run(
         [sys.executable, str(RECIPES / "four_rooms.py"), "scale=tiny", f"out_dir={out}", "progress=false"],
@@ -177,6 +181,7 @@ def test_four_rooms_recipe_command_line(tmp_path):
     )  # fmt: skip
     assert again.returncode == 0
     assert len((out / "cells" / "ran.txt").read_text().split()) == len(cells)
+    assert "resuming" in again.stdout and "6 finished cells skipped (supervised-A-seed0" in again.stdout
 
 
 def test_four_rooms_recipe_with_two_level_hierarchy(tmp_path):
