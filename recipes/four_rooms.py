@@ -1,10 +1,10 @@
 """Four rooms GridWorld, supervised and exploration settings (Fox et al. 2017, section 5.1).
 
 Conditions: A (DQN with actions only), H1u / H1s (DQN over actions and options discovered by DDO with a uniform /
-learned meta-control). Writes results.csv, summary.md, curves.png and pictures/ to ``out_dir`` and prints the
-summary table.
+learned meta-control). Writes results.csv, summary.md, curves.png, pictures/ (option pictures and videos) and the
+log (four_rooms.log) to ``out_dir``, nothing elsewhere, and prints the summary table.
 
-    python recipes/four_rooms.py                 # default scale, about 10 minutes on 2 CPU cores
+    python recipes/four_rooms.py                 # default scale: about 3 minutes on 2 free CPU cores, ~2 MB
     python recipes/four_rooms.py scale=paper     # 15 seeds x 5000 episodes, supervised and exploration
     python recipes/four_rooms.py backend=local num_workers=8 logger.backend=tensorboard
 """
@@ -20,7 +20,8 @@ def run(cfg, quiet: bool = False) -> str | None:
     summary = run_gridworld_script(cfg, "Four rooms", quiet=quiet)
     if summary is not None:
         print(summary)
-        print(f"results.csv, summary.md, curves.png and pictures/ in {cfg.out_dir}")
+        print(f"results.csv, summary.md, curves.png, pictures/ (a PNG and a video per set of options) and "
+              f"{cfg.log_file} in {cfg.out_dir}")
     return summary
 
 

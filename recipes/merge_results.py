@@ -24,6 +24,8 @@ def main(argv=None) -> str:
     parser.add_argument("--final-window", type=int, default=100, help="episodes of the final return")
     parser.add_argument("--smooth-window", type=int, default=50, help="moving average of the reach criterion")
     parser.add_argument("--curve-window", type=int, default=50, help="moving average of the plotted curves")
+    parser.add_argument("--order", default="A,H1u,H1s,H2u,H2s",
+                        help="the conditions' order in the tables and legends (others follow alphabetically)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     sources = [Path(p) / "results.csv" if Path(p).is_dir() else Path(p) for p in args.inputs]
@@ -32,6 +34,7 @@ def main(argv=None) -> str:
     summary = write_summary(
         out / "results.csv", out, args.title,
         {"final_window": args.final_window, "smooth_window": args.smooth_window, "curve_window": args.curve_window},
+        condition_order=[c.strip() for c in args.order.split(",") if c.strip()],
     )  # fmt: skip
     print(summary)
     print(f"{len(added)} cells merged; results.csv, summary.md and curves.png in {out}")

@@ -19,7 +19,8 @@ def run(cfg, quiet: bool = False) -> str | None:
     summary = run_gridworld_script(cfg, "Two rooms", quiet=quiet)
     if summary is not None:
         print(summary)
-        print(f"results.csv, summary.md, curves.png and pictures/ in {cfg.out_dir}")
+        print(f"results.csv, summary.md, curves.png, pictures/ (a PNG and a video per set of options) and "
+              f"{cfg.log_file} in {cfg.out_dir}")
     return summary
 
 

@@ -138,18 +138,16 @@ def test_against_rliable_when_installed():
 
 def test_plot_aggregates_names_its_intervals(tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
-    from matplotlib.figure import Figure
+    from _figures import assert_explained, caption
 
-    saved = []
-    save = Figure.savefig
-    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (saved.append(fig), save(fig, *a, **k))[1])
     rng = np.random.default_rng(0)
     agg = aggregate_scores({"A": rng.normal(size=(3, 2)), "H1": rng.normal(size=(3, 2))}, [("H1", "A")],
                            tasks=["Pong", "Seaquest"], num_resamples=200)
-    plot_aggregates(agg, tmp_path / "aggregates.png", title="Atari RAM")
+    fig = plot_aggregates(agg, tmp_path / "aggregates.png", title="Atari RAM")
     assert (tmp_path / "aggregates.png").read_bytes()[:4] == b"\x89PNG"
-    fig = saved[0]
-    suptitle = fig._suptitle.get_text()
+    assert_explained(fig)
+    assert "stratified percentile bootstrap over runs (Agarwal et al. 2021) (200 resamples)" in caption(fig)
+    suptitle = fig.subfigs[0].get_suptitle()
     assert "stratified percentile bootstrap" in suptitle and "Pong, Seaquest" in suptitle
     assert [ax.get_title() for ax in fig.axes] == ["IQM, 95% CI", "Probability of improvement, 95% CI",
                                                   "Performance profiles, 95% bands"]

@@ -145,21 +145,14 @@ def test_plot_curves_writes_png(tmp_path):
         log.append_cell("sup", "A", seed, list(np.linspace(0, 1, 30)))
         log.append_cell("sup", "H1u", seed, list(np.linspace(0, 2, 30)))
     log.append_cell("sup", "H1s", 0, list(np.linspace(0, 2, 30)))  # one seed: no band
-    from matplotlib.figure import Figure
+    from _figures import assert_explained, caption
 
-    saved = []
-    save = Figure.savefig
-
-    def keep(fig, *args, **kwargs):
-        saved.append(fig)
-        return save(fig, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Figure, "savefig", keep)
-        plot_curves(log, tmp_path / "curves.png", smooth_window=5)
+    fig = plot_curves(log, tmp_path / "curves.png", smooth_window=5)
     data = (tmp_path / "curves.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
-    [ax] = saved[0].axes
+    assert_explained(fig)
+    assert "5 episodes (1/2 seeds per condition)" in caption(fig) and "95% Student-t interval" in caption(fig)
+    [ax] = fig.axes
     assert "95% Student-t interval of the mean over seeds" in ax.get_title()
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert labels == ["A: mean of 2 seeds", "A: 95% t-interval over 2 seeds", "H1s: mean of 1 seed",

@@ -38,3 +38,19 @@ def test_seed_lock_excludes_another_holder_in_the_process(tmp_path):
             _seed_lock(str(tmp_path)).acquire(timeout=0.05)
     with _seed_lock(str(tmp_path)):
         pass
+
+
+def test_option_frame_strip_explains_itself(tmp_path):
+    pytest.importorskip("matplotlib")
+    import numpy as np
+    from _figures import caption
+
+    from torchrl_options.experiments.atari.figures import _strip_figure
+
+    strip = np.zeros((210, 3 * 160, 3), dtype=np.uint8)
+    fig = _strip_figure(strip, [4, 6, 9], 1, 3, (4, 10), 12, 40, "Seaquest", 0, str(tmp_path / "option1.png"))
+    assert (tmp_path / "option1.png").read_bytes()[:4] == b"\x89PNG"
+    [ax] = fig.axes
+    assert ax.get_title() == "Seaquest: option 1 of 3, its longest stretch as the most likely option"
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["4", "6", "9"] and ax.get_ylabel()
+    assert "steps 4 to 9" in caption(fig) and "most likely at 12 of the 40 steps" in caption(fig)

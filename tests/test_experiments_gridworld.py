@@ -1,6 +1,7 @@
 """The GridWorld per-cell pipeline: batched-env DQN, checkpoint resume, cached discovery, greedy trajectories."""
 import torch
 
+from torchrl_options.checkpoints import load_file
 from torchrl_options.envs import ValueIterationSupervisor
 from torchrl_options.experiments import Cell
 from torchrl_options.experiments.gridworld import (
@@ -43,13 +44,30 @@ def test_train_episodes_resumes_from_checkpoint(tmp_path):
     ckpt = tmp_path / "dqn.pt"
     agent = make_agent(_cfg(tmp_path), "actions", seed=0)
     first, _ = train_episodes(agent, 4, ckpt, checkpoint_every=4)
+    assert "replay_buffer" not in load_file(ckpt)  # finished: what a resume needs, not the buffer
     frames = agent.frames
     resumed = make_agent(_cfg(tmp_path), "actions", seed=0)
     returns, _ = train_episodes(resumed, 10, ckpt, checkpoint_every=4)
     assert returns[:4] == first and len(returns) == 10
     assert resumed.frames > frames  # continued, not restarted
-    state = torch.load(ckpt, weights_only=False)
-    assert len(state["log"]["episode_returns"]) >= 10 and "replay_buffer" in state
+    state = load_file(ckpt)
+    assert len(state["log"]["episode_returns"]) >= 10 and "replay_buffer" not in state
+
+
+def test_train_episodes_keeps_the_buffer_until_the_end(tmp_path, monkeypatch):
+    """Mid-run checkpoints hold the replay buffer (a bit-for-bit resume needs it); the final one only when asked
+    (``final_buffer``: an agent trained on afterwards, like the exploration setting's pre-trained agent)."""
+    import torchrl_options.experiments.gridworld as gridworld
+
+    saved = []
+    real_save = gridworld.save_file
+    monkeypatch.setattr(gridworld, "save_file", lambda obj, path: (saved.append(obj), real_save(obj, path))[1])
+    train_episodes(make_agent(_cfg(tmp_path), "actions", seed=0), 8, tmp_path / "a.pt", checkpoint_every=4)
+    assert ["replay_buffer" in s for s in saved] == [True, False]
+    saved.clear()
+    train_episodes(make_agent(_cfg(tmp_path), "actions", seed=0), 8, tmp_path / "b.pt", checkpoint_every=4,
+                   final_buffer=True)  # fmt: skip
+    assert ["replay_buffer" in s for s in saved] == [True, True]
 
 
 def test_discovery_is_cached(tmp_path):

@@ -1,12 +1,21 @@
 """Pictures of options: trajectories until termination and termination maps (figures 1 and 6)."""
 import cv2
 import numpy as np
+import pytest
 import torch
 from tensordict.nn import TensorDictModule
 
-from torchrl_options import OptionsMLP
+from torchrl_options import OptionHierarchy, OptionsMLP
 from torchrl_options.envs import GridWorldEnv
-from torchrl_options.experiments.option_pictures import draw_options, option_trajectories, termination_map
+from torchrl_options.experiments.option_pictures import (
+    draw_hierarchy,
+    draw_options,
+    option_trajectories,
+    option_video,
+    termination_map,
+)
+
+from _figures import assert_explained, caption, legend_labels, texts
 
 
 class _GoDown(torch.nn.Module):
@@ -45,10 +54,45 @@ def test_termination_map_is_a_probability_per_free_cell():
     assert torch.allclose(fixed[0], torch.zeros(env.grid.num_free), atol=1e-6)
 
 
-def test_draw_options_writes_one_png(tmp_path):
+def test_draw_options_writes_one_explained_png(tmp_path):
     path = tmp_path / "options.png"
-    image = draw_options(_options(), {"grid": "four-rooms"}, path, cell_size=10, target_pos=(13, 9))
-    assert image.shape == (150, 3 * 110 + 2 * 4, 3)
+    fig = draw_options(_options(), {"grid": "four-rooms"}, path, cell_size=10, target_pos=(13, 9), title="my run")
     read = cv2.imread(str(path))
-    assert read is not None and read.shape == image.shape
-    assert np.array_equal(cv2.cvtColor(read, cv2.COLOR_BGR2RGB), image)
+    assert read is not None and read.shape[0] > 200 and read.shape[1] > 600
+    assert_explained(fig)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    assert titles == ["every option, 3 starts each", "option 0: termination", "option 1: termination"]
+    [bar] = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert bar.get_ylabel() == "termination probability"
+    assert legend_labels(fig)[:3] == ["option 0", "option 1", "start"]
+    text = caption(fig)
+    assert "3 uniformly random start cells" in text and "(13, 9)" in text and "red: 1" in text
+    assert "my run" in texts(fig)
+
+
+def test_draw_hierarchy_writes_one_explained_png(tmp_path):
+    h = OptionHierarchy(4, [OptionsMLP(4, 4, 2), OptionsMLP(4, 6, 2)])
+    fig = draw_hierarchy(h, {"grid": "four-rooms"}, tmp_path / "h.png", num_starts=1, max_length=4, cell_size=4)
+    assert cv2.imread(str(tmp_path / "h.png")) is not None
+    assert_explained(fig)
+    assert legend_labels(fig)[:3] == ["level-1 option 0", "level-1 option 1", "primitive action"]
+    assert "2-level hierarchy" in caption(fig)
+
+
+def test_option_video_plays_every_trajectory(tmp_path):
+    path = tmp_path / "options.avi"
+    env = GridWorldEnv("four-rooms", noise=0.0)
+    n = option_video(_options(), env, path, num_starts=2, max_length=6, cell_size=8, target_pos=(13, 9))
+    # option 0 walks down without stopping (7 cells), option 1 stops after one step (2 cells); 2 starts each
+    paths = option_trajectories(_options(), env, num_starts=2, max_length=6, target_pos=(13, 9))
+    assert n == sum(len(p) for option_paths in paths for p in option_paths) == 2 * 7 + 2 * 2
+    video = cv2.VideoCapture(str(path))
+    assert video.isOpened() and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == n
+    ok, frame = video.read()
+    assert ok and frame.shape[0] > 15 * 8 and frame.shape[1] == 11 * 8  # a caption band above the map
+    count = 1
+    while video.read()[0]:
+        count += 1
+    assert count == n
+    with pytest.raises(ValueError, match="num_starts >= 1"):
+        option_video(_options(), env, tmp_path / "x.avi", num_starts=0)

@@ -49,19 +49,41 @@ def _check_outputs(out, cells):
     return rows
 
 
-def test_two_rooms_recipe_resumes(tmp_path):
+def test_two_rooms_recipe_resumes(tmp_path, monkeypatch):
     recipe = _load("two_rooms")
     out = tmp_path / "two_rooms"
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")  # the recipe writes under out_dir only
     assert recipe.run(_cfg("two_rooms", out, "stop_after_cells=1")) is None  # interrupted after one cell
     ran = (out / "cells" / "ran.txt").read_text().split()
     assert ran == ["supervised-A-seed0"]
     assert not (out / "summary.md").exists()
+    first_log = (out / "two_rooms.log").read_text()
+    assert "Two rooms: 1 cells to run" in first_log and "cell supervised-A-seed0 finished" in first_log
     summary = recipe.run(_cfg("two_rooms", out))
     assert "episodes to a 50-episode mean return" in summary
     ran = (out / "cells" / "ran.txt").read_text().split()
     assert sorted(ran) == sorted(["supervised-A-seed0", "supervised-O-seed0", "supervised-AO-seed0"])  # A not redone
     _check_outputs(out, [("supervised", c, 0) for c in ("A", "O", "AO")])
+    # the log file holds the log: the resumed run names the cells it skips, the cells run, the summary
+    log = (out / "two_rooms.log").read_text()
+    assert "1 finished cells skipped (supervised-A-seed0)" in log and "cell supervised-AO-seed0 finished" in log
+    assert "summary:" in log and "| supervised | AO |" in log
+    # rows in the recipe's order of its conditions (A, O, AO), not alphabetical
+    rows = [line.split("|")[2].strip() for line in summary.splitlines() if line.startswith("| supervised |")]
+    assert rows[:3] == ["A", "O", "AO"]
+    # finished cells keep what a resume needs, not their replay buffers
+    from torchrl_options.checkpoints import load_file
+
+    for cell in ("A", "O", "AO"):
+        state = load_file(out / "cells" / f"supervised-{cell}-seed0" / "dqn.pt")
+        assert "replay_buffer" not in state and state["log"]["episode_returns"]
+    assert list((tmp_path / "cwd").iterdir()) == []
     assert [p.name for p in (out / "pictures").glob("*.png")] == ["supervised-seed0-K2-uniform.png"]
+    import cv2  # the options' video: 2 options x 4 starts (pictures.num_starts), a frame per visited cell
+
+    video = cv2.VideoCapture(str(out / "pictures" / "supervised-seed0-K2-uniform.avi"))
+    assert video.isOpened() and 2 * 4 * 2 <= video.get(cv2.CAP_PROP_FRAME_COUNT) <= 2 * 4 * 31
     # resuming with other settings is refused (the finished cells were made with the old ones), naming them;
     # other seeds or conditions, or how cells run, are not settings of the cells
     with pytest.raises(ValueError, match=r"dqn.lr: [0-9.e-]+ there, 0.5 now.*episodes: \d+ there, 7 now"):
@@ -70,6 +92,62 @@ def test_two_rooms_recipe_resumes(tmp_path):
                            "backend=local", "summary.final_window=3")) is None  # fmt: skip
     assert recipe.run(_cfg("two_rooms", out, "dqn.lr=0.5", "allow_changed_settings=true", "stop_after_cells=0",
                            "seeds=[5]")) is None  # fmt: skip
+
+
+def test_ddo_progress_bar_names_the_run(tmp_path, monkeypatch):
+    """The DDO bar says which setting, seed, number of options and meta-control it fits."""
+    import torchrl_options.experiments.gridworld as gridworld
+    from omegaconf import OmegaConf
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_discover(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(gridworld, "discover_options", fake_discover)
+    cfg = OmegaConf.to_container(_cfg("four_rooms", tmp_path), resolve=True)
+    monkeypatch.setattr(gridworld, "_trajectories", lambda cfg, seed: None)
+    with pytest.raises(Stop):
+        gridworld.cell_options(cfg, gridworld.Cell("supervised", "H1s", 2), progress=True)
+    assert seen["desc"] == "DDO supervised seed 2: 4 options, learned meta-control" and seen["progress"]
+
+
+def test_quickstart_writes_under_its_out_dir(tmp_path, monkeypatch, capsys):
+    import functools
+
+    recipe = _load("quickstart")
+    # a short discovery: this test is about where it writes and what it prints, not about the options
+    monkeypatch.setattr(recipe, "discover_options", functools.partial(recipe.discover_options, num_iterations=3,
+                                                                      restarts=1))  # fmt: skip
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    result = recipe.main([f"out_dir={tmp_path / 'qs'}"])
+    assert sorted(p.name for p in (tmp_path / "qs").iterdir()) == ["options.pt"]
+    assert list((tmp_path / "cwd").iterdir()) == []
+    printed = capsys.readouterr().out
+    assert "option 0: walks" in printed and "option 1: walks" in printed and "used at" in printed
+    assert f"Segmentation: {result['accuracy']:.1%} of the steps labelled with their planted option" in printed
+    assert f"saved the options to {tmp_path / 'qs' / 'options.pt'}" in printed
+    with pytest.raises(ValueError, match="quickstart takes out_dir=PATH .*got 'outdir=x'"):
+        recipe.main(["outdir=x"])
+
+
+def test_time_claims_agree():
+    """The config, the scale and the recipe's docstring state the same time for a default four-rooms run."""
+    import re
+
+    config = (RECIPES / "config" / "four_rooms.yaml").read_text().splitlines()
+    claims = [
+        next(line for line in config if "default scale" in line),
+        (RECIPES / "config" / "scale" / "default.yaml").read_text().splitlines()[0],
+        next(line for line in (RECIPES / "four_rooms.py").read_text().splitlines() if "# default scale" in line),
+    ]
+    minutes = {re.search(r"(\d+) min", line).group(1) for line in claims}
+    assert minutes == {"3"}, claims
 
 
 def test_three_rooms_recipe(tmp_path):
@@ -89,9 +167,13 @@ def test_four_rooms_recipe_command_line(tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert "| supervised | H1u |" in result.stdout
-    cells = [(s, c, 0) for s in ("supervised", "exploration") for c in ("A", "H1u", "H1s")]
+    cells = [(s, c, 0) for s in ("supervised", "exploration") for c in ("A", "H1u", "H2u")]  # scale=tiny
     _check_outputs(out, cells)
     assert (out / ".hydra" / "config.yaml").exists()  # hydra.run.dir is the output dir
+    assert list(tmp_path.iterdir()) == [out]  # nothing written outside out_dir
+    log = (out / "four_rooms.log").read_text()  # the package's log, not Hydra's (empty) one
+    assert "Four rooms: 6 cells to run" in log and "summary:" in log
+    assert "DDO supervised seed 0: 4 options, uniform meta-control" not in result.stdout  # progress=false
     # a second run finds every cell finished and only rewrites the outputs
     again = subprocess.run(
         [sys.executable, str(RECIPES / "four_rooms.py"), "scale=tiny", f"out_dir={out}", "progress=false"],
@@ -99,6 +181,7 @@ def test_four_rooms_recipe_command_line(tmp_path):
     )  # fmt: skip
     assert again.returncode == 0
     assert len((out / "cells" / "ran.txt").read_text().split()) == len(cells)
+    assert "resuming" in again.stdout and "6 finished cells skipped (supervised-A-seed0" in again.stdout
 
 
 def test_four_rooms_recipe_with_two_level_hierarchy(tmp_path):

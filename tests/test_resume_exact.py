@@ -68,11 +68,17 @@ def test_gridworld_cell_resumes_bit_for_bit(tmp_path, monkeypatch, condition):
         _run(cfg)
     assert not (tmp_path / "cut" / "results.csv").exists() or b"supervised" not in (tmp_path / "cut" / "results.csv").read_bytes()
     ckpt = tmp_path / "cut" / "cells" / f"supervised-{condition}-seed0" / "dqn.pt"
-    assert 16 <= len(load_file(ckpt)["log"]["episode_returns"]) < 48  # interrupted mid-cell
+    cut = load_file(ckpt)
+    assert 16 <= len(cut["log"]["episode_returns"]) < 48  # interrupted mid-cell
+    assert "replay_buffer" in cut  # an unfinished cell keeps its buffer: a bit-for-bit resume needs it
     monkeypatch.setattr(gridworld, "save_file", real_save)
     torch.manual_seed(1234)  # the resumed process's global random state is whatever it is
     resumed = _run(cfg)
     assert resumed == whole
+    finished = load_file(ckpt)
+    assert len(finished["log"]["episode_returns"]) >= 48
+    assert "replay_buffer" not in finished  # a finished cell keeps no buffer
+    assert ckpt.stat().st_size < 100_000
 
 
 def test_checkpoint_carries_random_state(tmp_path):

@@ -126,3 +126,19 @@ def test_random_baseline_matches_its_expectation():
     # the F1 of random boundaries is far below a perfect segmentation
     assert base["f1"] < 0.3
     assert boundary_metrics(ref, ref, 2, lengths=[200] * 20)["f1"] == 1.0
+
+
+def test_plot_segmentation_explains_itself(tmp_path):
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+    from _figures import assert_explained, caption, legend_labels
+
+    from torchrl_options.segmentation import plot_segmentation
+
+    fig = plot_segmentation(torch.tensor([[0, 0, 1, 1, 2], [1, 1, 1, 0, -1]]), [[2, 4], [3]], path=tmp_path / "s.png")
+    assert (tmp_path / "s.png").read_bytes()[:4] == b"\x89PNG"
+    assert_explained(fig, min_caption=100)
+    assert fig.axes[0].get_title() == "Segmentation of 2 trajectories into 3 options"
+    assert legend_labels(fig) == ["option 0", "option 1", "option 2", "reference boundary"]
+    assert "Crosses: the reference boundaries" in caption(fig)
+    plt.close(fig)

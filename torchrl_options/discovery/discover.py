@@ -370,6 +370,7 @@ def discover_options(
     trajectory_key: NestedKey = ("collector", "traj_ids"),
     return_info: bool = False,
     log_every: int = 50,
+    desc: str = "DDO",
 ) -> TensorDictModuleBase | DiscoveryResult:
     """Discovers ``num_options`` options from demonstration trajectories with DDO.
 
@@ -445,6 +446,8 @@ def discover_options(
         trajectory_key (NestedKey): trajectory ids used to split replay-buffer samples.
         return_info (bool): return a :class:`DiscoveryResult` (options, meta-control, history).
         log_every (int): log the diagnostics every this many iterations.
+        desc (str): the progress bar's label, e.g. which run it fits (``"DDO supervised seed 0, K=4, uniform"``).
+            Defaults to ``"DDO"``.
 
     Returns:
         The trained options module, or a :class:`DiscoveryResult` with ``return_info=True``.
@@ -594,8 +597,8 @@ def discover_options(
                 int(table.num_steps), table.num_states, table.num_pairs,
             )
         n_first = restart_iterations if restarts > 1 else num_iterations
-        desc = f"DDO start {r + 1}/{restarts}" if restarts > 1 else "DDO"
-        records = train(loss_module, opt, sched, table, n_first, desc)
+        label = f"{desc} start {r + 1}/{restarts}" if restarts > 1 else desc
+        records = train(loss_module, opt, sched, table, n_first, label)
         candidates.append((records[-1]["log_likelihood_per_step"] if records else float("-inf"), r, loss_module,
                            opt, sched, table, records))  # fmt: skip
     restart_lls = [c[0] for c in candidates] if restarts > 1 else []
@@ -606,7 +609,7 @@ def discover_options(
         lls = [h["log_likelihood_per_step"] for h in history]
         stopped = tol is not None and converged_at(lls, tol, patience) is not None
         if not stopped and num_iterations > len(history):
-            history = history + train(loss_module, opt, sched, table, num_iterations - len(history), "DDO")
+            history = history + train(loss_module, opt, sched, table, num_iterations - len(history), desc)
     options, meta_module = loss_module.options, loss_module.meta_control
     with torch.no_grad():
         diagnostics = option_diagnostics(loss_module.log_probabilities(data))

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -170,10 +170,12 @@ def discover_cached(
     seed: int,
     discovery: Mapping[str, Any],
     progress: bool = False,
+    desc: str = "DDO",
 ):
     """DDO options, loaded from ``path`` when it exists, else discovered and saved there.
 
-    ``trajectories`` may be a callable, so that a resumed run does not even regenerate them.
+    ``trajectories`` may be a callable, so that a resumed run does not even regenerate them. ``desc`` labels the
+    progress bar (which run the discovery fits).
     """
     path = Path(path)
     if path.exists():
@@ -182,7 +184,7 @@ def discover_cached(
     data = trajectories() if callable(trajectories) else trajectories
     result = discover_options(
         data, num_options, meta_control=meta_control, num_iterations=discovery["num_iterations"], seed=seed,
-        progress=progress, return_info=True, **_discovery_kwargs(discovery),
+        progress=progress, return_info=True, desc=desc, **_discovery_kwargs(discovery),
     )  # fmt: skip
     final = result.history[-1] if result.history else {}
     with atomic_replace(path) as tmp:
@@ -202,8 +204,10 @@ def discover_hierarchy_cached(
     seed: int,
     discovery: Mapping[str, Any],
     progress: bool = False,
+    desc: str = "DDO",
 ) -> OptionHierarchy:
-    """A multi-level hierarchy (H2u / H2s), loaded from ``path`` when it exists, else discovered and saved."""
+    """A multi-level hierarchy (H2u / H2s), loaded from ``path`` when it exists, else discovered and saved
+    (``desc`` labels the progress bars)."""
     path = Path(path)
     if path.exists():
         logger.info("hierarchy: loading %s", path)
@@ -212,7 +216,7 @@ def discover_hierarchy_cached(
     upper = discovery.get("upper_level_iterations", discovery["num_iterations"])
     hierarchy = discover_hierarchy(
         data, num_options, meta_control=meta_control, num_iterations=[discovery["num_iterations"]]
-        + [upper] * (len(num_options) - 1), seed=seed, progress=progress, **_discovery_kwargs(discovery),
+        + [upper] * (len(num_options) - 1), seed=seed, progress=progress, desc=desc, **_discovery_kwargs(discovery),
     )  # fmt: skip
     with atomic_replace(path) as tmp:
         save_hierarchy(hierarchy, tmp, metadata={"num_options": num_options, "meta_control": meta_control, "seed": seed})
@@ -267,6 +271,7 @@ def train_episodes(
     *,
     checkpoint_every: int = 100,
     include_buffer: bool = True,
+    final_buffer: bool = False,
     progress: bool = False,
     desc: str = "DQN",
     on_episodes: Callable[[list[float], int], None] | None = None,
@@ -275,6 +280,11 @@ def train_episodes(
 
     Resumes from ``checkpoint`` when it exists and saves it every ``checkpoint_every`` episodes (and at the
     end). ``on_episodes(new_returns, first_index)`` is called with each chunk's new returns (for loggers).
+
+    A checkpoint of an unfinished run holds the replay buffer (``include_buffer``: what a bit-for-bit resume
+    needs); the final one only with ``final_buffer`` (an agent that trains on from it, e.g. the pre-trained agent
+    that the exploration setting's baseline continues): a finished cell needs its log, not its buffer (most of
+    a checkpoint's size).
 
     Returns:
         The first ``num_episodes`` returns and the frames at which each ended.
@@ -304,7 +314,8 @@ def train_episodes(
         # the budget is only a bound: the callback stops at the target number of episodes
         agent.train(total_frames=10**12, callback=stop)
         if checkpoint is not None:
-            save_file(agent.state_dict(include_buffer=include_buffer), checkpoint)
+            finished = len(agent.log.episode_returns) >= num_episodes
+            save_file(agent.state_dict(include_buffer=final_buffer if finished else include_buffer), checkpoint)
         if on_episodes is not None:
             on_episodes(agent.log.episode_returns[reported:num_episodes], reported)
         reported = min(len(agent.log.episode_returns), num_episodes)
@@ -333,8 +344,8 @@ def _pretrained_agent(cfg: Mapping[str, Any], setting: str, seed: int, progress:
     path = cell_dir(cfg["out_dir"], f"{setting}-seed{seed}") / "pretrain.pt"
     agent = make_agent(cfg, "actions", seed)
     train_episodes(
-        agent, int(cfg["settings"][setting]["pretrain_episodes"]), path,
-        checkpoint_every=int(cfg["checkpoint_every"]), progress=progress, desc=f"{setting} pretrain s{seed}",
+        agent, int(cfg["settings"][setting]["pretrain_episodes"]), path, checkpoint_every=int(cfg["checkpoint_every"]),
+        final_buffer=True, progress=progress, desc=f"{setting}: actions-only pre-training, seed {seed}",
     )  # fmt: skip
     return agent, path
 
@@ -367,14 +378,15 @@ def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
     else:
         raise ValueError(f"setting source must be 'supervisor' or 'greedy', got {setting['source']!r}.")
     levels = int(condition.get("levels", 1))
+    desc = f"DDO {cell.setting} seed {cell.seed}: {num_options} options, {meta} meta-control"
     if levels > 1:
         return discover_hierarchy_cached(
             source, path.with_name(f"hierarchy-K{num_options}x{levels}-{meta}.pt"), num_options=[num_options] * levels,
-            meta_control=meta, seed=cell.seed, discovery=discovery, progress=progress,
+            meta_control=meta, seed=cell.seed, discovery=discovery, progress=progress, desc=desc,
         )  # fmt: skip
     return discover_cached(
         source, path, num_options=num_options, meta_control=meta, seed=cell.seed, discovery=discovery,
-        progress=progress,
+        progress=progress, desc=desc,
     )  # fmt: skip
 
 
@@ -420,7 +432,7 @@ def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
     num_episodes = int(condition.get("episodes") or cfg["episodes"])
     returns, frames = train_episodes(
         agent, num_episodes, ckpt, checkpoint_every=int(cfg["checkpoint_every"]), progress=progress,
-        desc=cell.name, on_episodes=log_returns,
+        desc=f"DQN {cell.name}", on_episodes=log_returns,
     )  # fmt: skip
     with open(Path(cfg["out_dir"], "cells", "ran.txt"), "a") as f:
         f.write(cell.name + "\n")
@@ -428,20 +440,21 @@ def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
 
 
 # --------------------------------------------------------------------------------------------- the recipe
-def reach_table(log, target: float, window: int) -> str:
+def reach_table(log, target: float, window: int, *, condition_order: Sequence[str] | None = None) -> str:
     """Markdown: per setting and condition, the episodes each seed needs for its ``window``-episode mean
     return to reach ``target`` (e.g. the two-rooms convergence of appendix B: a return of 1.0), with a 95%
     Student-t interval over seeds (cut to the counts possible); seeds that never reach it count with all their
     episodes."""
     from torchrl_options.experiments.intervals import mean_interval
-    from torchrl_options.experiments.results import _count, episodes_to_reach, within
+    from torchrl_options.experiments.results import _count, condition_rank, episodes_to_reach, within
 
     lines = [
         f"| setting | condition | episodes to a {window}-episode mean return of {target:g} [95% t-interval] | "
         "seeds that reach it |",
         "|---|---|---|---|",
     ]
-    for setting, condition in log.settings_and_conditions():
+    rank = condition_rank(condition_order)
+    for setting, condition in sorted(log.settings_and_conditions(), key=lambda k: (k[0], rank(k[1]))):
         counts, reached = [], 0
         runs = log.returns(setting, condition)
         for returns in runs.values():
@@ -460,28 +473,40 @@ def reach_table(log, target: float, window: int) -> str:
 RUN_ONLY_SETTINGS = (
     "out_dir", "seeds", "settings_to_run", "conditions_to_run", "backend", "num_workers", "ray_address",
     "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "scale",
-    "allow_changed_settings",
+    "allow_changed_settings", "log_file",
 )  # fmt: skip
 
 
-def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
+def run_gridworld_recipe(cfg: Mapping[str, Any], title: str, *, quiet_console: bool = False) -> str | None:
     """What every GridWorld recipe does: the sweep over (setting, condition, seed), then the outputs.
 
-    Writes ``results.csv``, ``summary.md``, ``curves.png`` and ``pictures/*.png`` (the discovered options of
-    the first seed) to ``cfg["out_dir"]``; returns the summary (``None`` when stopped early by
-    ``stop_after_cells``, which the tests use to interrupt a run). A run resumed into an ``out_dir`` whose
-    recorded settings differ (any key but :data:`RUN_ONLY_SETTINGS`) is refused, unless
-    ``cfg["allow_changed_settings"]``.
+    Writes ``results.csv``, ``summary.md``, ``curves.png``, ``pictures/`` (the discovered options of the first
+    seed: pictures and videos) and the log, ``cfg["log_file"]`` (default ``recipe.log``), to ``cfg["out_dir"]``
+    and nothing elsewhere; returns the summary (``None`` when stopped early by ``stop_after_cells``, which the tests
+    use to interrupt a run). A resumed run logs the finished cells it skips. A run resumed into an ``out_dir``
+    whose recorded settings differ (any key but :data:`RUN_ONLY_SETTINGS`) is refused, unless
+    ``cfg["allow_changed_settings"]``. ``quiet_console``: the package's INFO records go to the log file only
+    (:func:`~torchrl_options.experiments.recipe_runner.log_to_file`).
     """
+    from torchrl_options.experiments.recipe_runner import log_to_file
+
+    cfg = dict(cfg)
+    check_gridworld_settings(cfg)  # every setting, before any work starts
+    out = Path(cfg["out_dir"])
+    log_file = cfg.get("log_file") or "recipe.log"
+    if not isinstance(log_file, str) or Path(log_file).name != log_file:
+        raise ValueError(f"log_file must be a file name (written in out_dir), got {log_file!r}.")
+    check_run_settings(out, cfg, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(cfg.get("allow_changed_settings", False)))
+    with log_to_file(out / log_file, quiet_console=quiet_console):
+        return _run_recipe(cfg, title, out)
+
+
+def _run_recipe(cfg: dict[str, Any], title: str, out: Path) -> str | None:
     import functools
 
     from torchrl_options.experiments.results import ResultsLog
     from torchrl_options.experiments.sweep import run_sweep
 
-    cfg = dict(cfg)
-    check_gridworld_settings(cfg)  # every setting, before any work starts
-    out = Path(cfg["out_dir"])
-    check_run_settings(out, cfg, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(cfg.get("allow_changed_settings", False)))
     log = ResultsLog(out / "results.csv")
     seeds = list(range(int(cfg["seeds"]))) if isinstance(cfg["seeds"], int) else list(cfg["seeds"])
     cells = [Cell(s, c, seed) for s in cfg["settings_to_run"] for c in cfg["conditions_to_run"] for seed in seeds]
@@ -494,15 +519,21 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
     stopped = stop is not None and len(todo) > int(stop)
     if stopped:
         todo = todo[: int(stop)]
+    logger.info("%s: %d cells to run in %s (%s)", title, len(todo), out, ", ".join(c.name for c in todo) or "none")
     bar = None
     if cfg.get("progress", False) and cfg.get("backend", "serial") != "serial":
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(todo), desc=title, unit="cell")
+        bar = tqdm(total=len(todo), desc=f"{title}: cells", unit="cell")
+
+    def finished(cell: Cell, result: CellResult) -> None:
+        logger.info("cell %s finished: %d episodes", cell.name, len(result.returns))
+        if bar is not None:
+            bar.update(1)
+
     run_sweep(
         functools.partial(run_gridworld_cell, cfg=cfg), todo, log, backend=cfg.get("backend", "serial"),
-        num_workers=cfg.get("num_workers"), ray_address=cfg.get("ray_address"),
-        on_result=(lambda cell, result: bar.update(1)) if bar is not None else None,
+        num_workers=cfg.get("num_workers"), ray_address=cfg.get("ray_address"), on_result=finished,
     )  # fmt: skip
     if bar is not None:
         bar.close()
@@ -510,13 +541,20 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str) -> str | None:
         logger.warning("stopped after %d cells (stop_after_cells); run again to resume.", int(stop))
         return None
 
-    text = write_summary(log, out, title, cfg.get("summary"))
-    write_option_pictures(cfg, min(seeds))
+    text = write_summary(log, out, title, cfg.get("summary"), condition_order=list(cfg["conditions"]))
+    pictures = write_option_pictures(cfg, min(seeds))
+    logger.info("summary:\n%s", text)
+    logger.info("wrote results.csv, summary.md, curves.png and %d pictures/videos in %s", len(pictures), out)
     return text
 
 
 def write_summary(
-    log: ResultsLog | str | os.PathLike, out_dir: str | os.PathLike, title: str, summary_cfg: Mapping[str, Any] | None = None
+    log: ResultsLog | str | os.PathLike,
+    out_dir: str | os.PathLike,
+    title: str,
+    summary_cfg: Mapping[str, Any] | None = None,
+    *,
+    condition_order: Sequence[str] | None = None,
 ) -> str:
     """Writes ``summary.md`` and ``curves.png`` for a ``results.csv`` to ``out_dir``; returns the summary: per
     condition, final returns and episodes to the baseline's with 95% Student-t intervals over seeds, and every
@@ -524,6 +562,8 @@ def write_summary(
 
     ``summary_cfg`` holds the recipes' ``summary`` keys: ``final_window`` (100), ``smooth_window`` (100),
     ``curve_window`` (50), and ``reach_return`` / ``reach_window`` for an extra table of the episodes to a return.
+    Rows (and the curves' legends) come per setting in ``condition_order`` (the recipe's order of its
+    ``conditions``, e.g. ``A, H1u, H1s``), other conditions after, alphabetically.
 
     Examples:
         >>> import os, tempfile
@@ -554,43 +594,60 @@ def write_summary(
     out.mkdir(parents=True, exist_ok=True)
     summary_cfg = dict(summary_cfg or {})
     final_window = int(summary_cfg.get("final_window", 100))
-    summaries = summarize(log, final_window=final_window, smooth_window=int(summary_cfg.get("smooth_window", 100)))
+    summaries = summarize(log, final_window=final_window, smooth_window=int(summary_cfg.get("smooth_window", 100)),
+                          condition_order=condition_order)  # fmt: skip
     text = f"# {title}\n\n" + summary_markdown(summaries, final_window=final_window)
-    comparisons = comparison_markdown(compare_to_baseline(log, final_window=final_window), final_window=final_window)
+    comparisons = comparison_markdown(
+        compare_to_baseline(log, final_window=final_window, condition_order=condition_order), final_window=final_window
+    )
     if comparisons:
         text += "\n" + comparisons
     if summary_cfg.get("reach_return") is not None:
-        text += "\n" + reach_table(log, float(summary_cfg["reach_return"]), int(summary_cfg.get("reach_window", 10)))
+        text += "\n" + reach_table(log, float(summary_cfg["reach_return"]), int(summary_cfg.get("reach_window", 10)),
+                                    condition_order=condition_order)
     (out / "summary.md").write_text(text)
-    plot_curves(log, out / "curves.png", smooth_window=int(summary_cfg.get("curve_window", 50)), title=title)
+    plot_curves(log, out / "curves.png", smooth_window=int(summary_cfg.get("curve_window", 50)), title=title,
+                condition_order=condition_order)
     return text
 
 
 def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
-    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6), and
+    """``pictures/<setting>-seed<seed>-K<k>-<meta>.png`` for every option file of ``seed`` (figures 1 and 6, with
+    titles, axes, legend, colour bar and caption) and, unless ``pictures.video`` is false, its video ``.avi`` (each
+    option run from a few starts, :func:`~torchrl_options.experiments.option_pictures.option_video`); and
     ``pictures/<setting>-seed<seed>-hierarchy-....png`` for every hierarchy (figure 1: level-2 options coloured by
     the level-1 option running)."""
-    from torchrl_options.experiments.option_pictures import draw_hierarchy, draw_options
+    from torchrl_options.experiments.option_pictures import draw_hierarchy, draw_options, option_video
 
     pictures_cfg = dict(cfg.get("pictures") or {})
     out = Path(cfg["out_dir"], "pictures")
     out.mkdir(parents=True, exist_ok=True)
+    num_starts, max_length = int(pictures_cfg.get("num_starts", 3)), int(pictures_cfg.get("max_length", 30))
     written = []
     for setting in cfg["settings_to_run"]:
         folder = Path(cfg["out_dir"], "cells", f"{setting}-seed{seed}")
         for path in sorted(folder.glob("options-*.pt")):
-            target = Path(out, f"{setting}-seed{seed}-{path.stem.removeprefix('options-')}.png")
+            stem = f"{setting}-seed{seed}-{path.stem.removeprefix('options-')}"
+            options = load_options(path)
+            target = Path(out, f"{stem}.png")
             draw_options(
-                load_options(path), cfg["env"], target, target_pos=pictures_cfg.get("target"),
-                num_starts=int(pictures_cfg.get("num_starts", 3)), max_length=int(pictures_cfg.get("max_length", 30)),
-                seed=seed,
+                options, cfg["env"], target, target_pos=pictures_cfg.get("target"), num_starts=num_starts,
+                max_length=max_length, seed=seed, title=f"Options discovered by DDO: {setting} setting, seed {seed}, "
+                f"{path.name} ({cfg['env'].get('grid', 'GridWorld')})",
             )  # fmt: skip
             written.append(target)
+            if pictures_cfg.get("video", True):
+                video = Path(out, f"{stem}.avi")
+                option_video(
+                    options, cfg["env"], video, target_pos=pictures_cfg.get("target"), num_starts=num_starts,
+                    max_length=max_length, seed=seed,
+                )  # fmt: skip
+                written.append(video)
         for path in sorted(folder.glob("hierarchy-*.pt")):
             target = Path(out, f"{setting}-seed{seed}-{path.stem}.png")
             draw_hierarchy(
-                load_hierarchy(path), cfg["env"], target, num_starts=int(pictures_cfg.get("num_starts", 3)),
-                max_length=2 * int(pictures_cfg.get("max_length", 30)), seed=seed,
+                load_hierarchy(path), cfg["env"], target, num_starts=num_starts, max_length=2 * max_length, seed=seed,
+                title=f"Option hierarchy discovered by DDO: {setting} setting, seed {seed}, {path.name}",
             )  # fmt: skip
             written.append(target)
     return written
@@ -598,22 +655,24 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
 
 def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | None:
     """What a GridWorld recipe script does with its Hydra config: the recipe, its console kept quiet if asked
-    (the script sets the thread count: one torch thread suits the tiny networks). Returns the summary table (``None`` when the run stopped early), for the script to print.
+    (the script sets the thread count: one torch thread suits the tiny networks). Returns the summary table
+    (``None`` when the run stopped early), for the script to print.
 
     Args:
         cfg: the recipe's config (an OmegaConf ``DictConfig`` or a plain mapping).
         title (str): the summary's title.
 
     Keyword Args:
-        quiet (bool): keep the console to progress bars and the summary unless ``cfg.verbose`` (the per-batch
-            DQN/DDO logs otherwise).
+        quiet (bool): keep the console to progress bars, warnings, resume messages and the summary unless
+            ``cfg.verbose`` (the per-batch DQN/DDO logs otherwise); the log file (``cfg.log_file`` in
+            ``out_dir``) holds them either way.
     """
     if not isinstance(cfg, Mapping) or type(cfg).__name__ == "DictConfig":
         from omegaconf import OmegaConf
 
         cfg = OmegaConf.to_container(cfg, resolve=True)
-    if quiet and not cfg.get("verbose", False):
-        for name in ("torchrl", "torchrl_options"):
-            logging.getLogger(name).setLevel(logging.WARNING)
+    quiet = quiet and not cfg.get("verbose", False)
+    if quiet:
+        logging.getLogger("torchrl").setLevel(logging.WARNING)  # TorchRL logs to its own console handler
         resume_logger.setLevel(logging.INFO)
-    return run_gridworld_recipe(cfg, title)
+    return run_gridworld_recipe(cfg, title, quiet_console=quiet)

@@ -1,5 +1,6 @@
-"""How a recipe script ends: bad settings as one line, Ctrl-C (SIGINT) and SIGTERM as one line naming what was
-saved and how to resume, never a traceback.
+"""How a recipe script runs and ends: its log in a file of its output folder (:func:`log_to_file`); bad settings
+as one line, Ctrl-C (SIGINT) and SIGTERM as one line naming what was saved and how to resume, never a traceback
+(:func:`recipe_guard`).
 
 A recipe saves as it goes: each finished cell is appended to ``<out_dir>/results.csv`` and each running cell
 checkpoints under ``<out_dir>/`` (every ``checkpoint_every`` episodes); running the same command again skips the
@@ -16,7 +17,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["recipe_guard"]
+__all__ = ["log_to_file", "recipe_guard"]
 
 logger = logging.getLogger(__name__)
 
@@ -94,3 +95,64 @@ def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") 
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+class _QuietConsole(logging.Filter):
+    """Lets through warnings and errors, the resume messages, and the records of other libraries."""
+
+    def __init__(self, names: tuple[str, ...]) -> None:
+        super().__init__()
+        self.names = names
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        ours = any(record.name == n or record.name.startswith(n + ".") for n in self.names)
+        return not ours or record.levelno >= logging.WARNING or record.name == "torchrl_options.resume"
+
+
+@contextlib.contextmanager
+def log_to_file(
+    path: str | os.PathLike, *, quiet_console: bool = False, loggers: tuple[str, ...] = ("torchrl_options",)
+) -> Iterator[Path]:
+    """Appends the log of ``loggers`` (the package's, INFO and above) to ``path`` while the block runs.
+
+    The loggers are lowered to INFO if they were set higher (and restored after). With ``quiet_console``, the
+    console (the stream handlers of the root logger, e.g. Hydra's) shows only their warnings and the resume
+    messages (``torchrl_options.resume``); the file still gets everything. Runs in worker processes
+    (``backend=local`` or ``ray``) log in their own process, not into this file.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "recipe.log")
+        >>> with log_to_file(path):
+        ...     logging.getLogger("torchrl_options.demo").info("cell %s finished", "A-seed0")
+        >>> open(path).read().strip().endswith("cell A-seed0 finished")
+        True
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    levels = {}
+    for name in loggers:
+        package = logging.getLogger(name)
+        levels[name] = package.level
+        if package.getEffectiveLevel() > logging.INFO:
+            package.setLevel(logging.INFO)
+        package.addHandler(handler)
+    quiet = _QuietConsole(tuple(loggers))
+    consoles = [
+        h for h in logging.getLogger().handlers
+        if quiet_console and isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler)
+    ]  # fmt: skip
+    for h in consoles:
+        h.addFilter(quiet)
+    try:
+        yield path
+    finally:
+        for h in consoles:
+            h.removeFilter(quiet)
+        for name, level in levels.items():
+            logging.getLogger(name).removeHandler(handler)
+            logging.getLogger(name).setLevel(level)
+        handler.close()

@@ -11,7 +11,7 @@ import csv
 import logging
 import os
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +36,7 @@ __all__ = [
     "within",
     "ConditionSummary",
     "summarize",
+    "condition_rank",
     "summary_markdown",
     "BaselineComparison",
     "compare_to_baseline",
@@ -284,14 +285,28 @@ class ConditionSummary:
     reached: int
 
 
+def condition_rank(condition_order: Sequence[str] | None) -> Callable[[str], tuple[int, str]]:
+    """A sort key for condition names: those of ``condition_order`` in its order (e.g. the recipe's ``A, H1u,
+    H1s``), then any other alphabetically; ``None``: alphabetical.
+
+    Examples:
+        >>> sorted(["H1s", "A", "H1u", "X"], key=condition_rank(["A", "H1u", "H1s"]))
+        ['A', 'H1u', 'H1s', 'X']
+    """
+    order = {c: i for i, c in enumerate(condition_order or ())}
+    return lambda condition: (order.get(condition, len(order)), condition)
+
+
 def _return_curves(
-    log: ResultsLog | Iterable[dict],
+    log: ResultsLog | Iterable[dict], condition_order: Sequence[str] | None = None
 ) -> tuple[dict[tuple[str, str], dict[int, list[float]]], list[tuple[str, str]]]:
-    """Per ``(setting, condition)``, each seed's returns in episode order, and those keys in sorted order."""
+    """Per ``(setting, condition)``, each seed's returns in episode order, and those keys in order: settings
+    alphabetically, conditions by :func:`condition_rank`."""
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     curves: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     order: list[tuple[str, str]] = []
-    for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
+    rank = condition_rank(condition_order)
+    for r in sorted(rows, key=lambda r: (r["setting"], rank(r["condition"]), r["seed"], r["episode"])):
         key = (r["setting"], r["condition"])
         if key not in order:
             order.append(key)
@@ -306,6 +321,7 @@ def summarize(
     final_window: int = 100,
     smooth_window: int = 100,
     confidence: float = 0.95,
+    condition_order: Sequence[str] | None = None,
 ) -> list[ConditionSummary]:
     """Per setting and condition: the mean final return and the episodes needed to reach the baseline's.
 
@@ -315,6 +331,7 @@ def summarize(
     (so the figure is then a lower bound), and ``reached`` says how many did. Intervals are Student-t intervals over
     seeds (:func:`~torchrl_options.experiments.intervals.mean_interval`; one seed gives an unbounded interval), those
     of episode counts cut to the counts possible (from ``smooth_window`` to the number of episodes, :func:`within`).
+    Rows come by setting, then in ``condition_order`` (:func:`condition_rank`; default alphabetical).
 
     Examples:
         >>> rows = [{"setting": "s", "condition": c, "seed": 0, "episode": i, "return": float(i >= n)}
@@ -324,7 +341,7 @@ def summarize(
         >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
         | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [2, 10] | 1/1 |
     """
-    curves, order = _return_curves(log)
+    curves, order = _return_curves(log, condition_order)
     targets = {}
     for (setting, condition), seeds in curves.items():
         if condition == baseline:
@@ -397,12 +414,18 @@ class BaselineComparison:
 
 
 def compare_to_baseline(
-    log: ResultsLog | Iterable[dict], *, baseline: str = "A", final_window: int = 100, confidence: float = 0.95
+    log: ResultsLog | Iterable[dict],
+    *,
+    baseline: str = "A",
+    final_window: int = 100,
+    confidence: float = 0.95,
+    condition_order: Sequence[str] | None = None,
 ) -> list[BaselineComparison]:
     """Per setting, every other condition against ``baseline`` on the seeds both ran: the mean and Student-t
     interval of the per-seed difference of final returns (mean return over the last ``final_window`` episodes),
     and its verdict, "ahead", "behind" or "no evidence either way"
-    (:func:`~torchrl_options.experiments.intervals.paired_difference_interval`).
+    (:func:`~torchrl_options.experiments.intervals.paired_difference_interval`). Conditions come in
+    ``condition_order`` (:func:`condition_rank`).
 
     Examples:
         >>> rows = [{"setting": "s", "condition": c, "seed": seed, "episode": i, "return": seed + gain}
@@ -410,7 +433,7 @@ def compare_to_baseline(
         >>> [(c.condition, c.difference[0], c.verdict, c.num_seeds) for c in compare_to_baseline(rows)]
         [('H1u', 0.5, 'ahead', 3)]
     """
-    curves, order = _return_curves(log)
+    curves, order = _return_curves(log, condition_order)
     out = []
     for setting, condition in order:
         if condition == baseline or (setting, baseline) not in curves:

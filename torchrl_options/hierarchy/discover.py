@@ -87,6 +87,7 @@ def discover_hierarchy(
     progress: bool = True,
     return_info: bool = False,
     log_every: int = 50,
+    desc: str = "DDO",
 ) -> OptionHierarchy | HierarchyDiscoveryResult:
     """Discovers a hierarchy of options, level by level, from demonstrations of primitive actions.
 
@@ -136,6 +137,7 @@ def discover_hierarchy(
         return_info (bool): return a :class:`HierarchyDiscoveryResult` with the training history.
         log_every (int): log (and record) the full diagnostics every this many iterations; other iterations
             record ``loss`` and ``log_likelihood_per_step`` only (the diagnostics cost a backward pass).
+        desc (str): the progress bars' label, followed by the level (``"<desc> level 2"``). Defaults to ``"DDO"``.
 
     Returns:
         The :class:`OptionHierarchy` (or a :class:`HierarchyDiscoveryResult` with ``return_info=True``).
@@ -239,8 +241,9 @@ def discover_hierarchy(
             params = list(options.parameters()) + (list(meta_module.parameters()) if meta_module is not None else [])
             opt = torch.optim.Adam(params, lr=lr, foreach=True) if optimizer is None else optimizer(params, lr=lr)
             first = min(restart_iterations, n_iter) if n_restarts > 1 else n_iter
+            label = f"{desc} start {r + 1}/{n_restarts}" if n_restarts > 1 else desc
             records = _train(loss_module, opt, data, first, batch_size, generator, progress, log_every, level,
-                             m_steps=m, tol=tol, patience=patience)  # fmt: skip
+                             m_steps=m, tol=tol, patience=patience, desc=label)  # fmt: skip
             candidates.append((records[-1]["log_likelihood_per_step"] if records else float("-inf"), r, loss_module,
                                opt, records))  # fmt: skip
         _, best, loss_module, opt, records = max(candidates, key=lambda c: (c[0], -c[1]))
@@ -251,7 +254,8 @@ def discover_hierarchy(
             stopped = tol is not None and converged_at(lls, tol, patience) is not None
             if not stopped and n_iter > len(records):
                 records = records + _train(loss_module, opt, data, n_iter - len(records), batch_size, generator,
-                                           progress, log_every, level, m_steps=m, tol=tol, patience=patience)  # fmt: skip
+                                           progress, log_every, level, m_steps=m, tol=tol, patience=patience,
+                                           desc=desc)  # fmt: skip
         restart_lls.append([c[0] for c in candidates] if n_restarts > 1 else [])
         history.append(records)
         hierarchy.append(loss_module.options, meta_control=loss_module.meta_control)
@@ -348,7 +352,7 @@ class HierarchicalEStep:
 
 def _train(
     loss_module, opt, data, num_iterations, batch_size, generator, progress, log_every, level, *, m_steps=1, tol=None,
-    patience=20,
+    patience=20, desc="DDO",
 ) -> list[dict]:
     def set_diagnostics(full: bool) -> None:
         loss_module.diagnostics = full
@@ -356,7 +360,7 @@ def _train(
     records = fit_ddo(
         loss_module, opt, lambda it: minibatch(data, batch_size, generator), num_iterations,
         e_step=HierarchicalEStep(loss_module), m_steps=m_steps, tol=tol, patience=patience,
-        desc=f"DDO level {level}", progress=progress, log_every=log_every, set_diagnostics=set_diagnostics,
+        desc=f"{desc} level {level}", progress=progress, log_every=log_every, set_diagnostics=set_diagnostics,
     )  # fmt: skip
     loss_module.diagnostics = True
     return records

@@ -3,6 +3,7 @@ reference boundaries marked with crosses. Needs matplotlib (the ``recipes`` extr
 from __future__ import annotations
 
 import importlib.util
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,13 +38,14 @@ def plot_segmentation(
         lengths: ``[B]`` valid steps; default: the non-negative entries of ``options``.
         num_options (int, optional): K, for the colours; default ``max(options) + 1``.
         max_trajectories (int, optional): draw the first this many rows (the paper shows 10). ``None``: all.
-        title (str, optional): the axes title.
+        title (str, optional): the axes title; default says how many trajectories and options.
         option_names (list of str, optional): legend labels; default ``"option k"``.
         path (str or Path, optional): save the figure there (e.g. ``segmentation.png``).
         ax (matplotlib Axes, optional): draw into it instead of a new figure.
 
     Returns:
-        The matplotlib ``Figure``.
+        The matplotlib ``Figure`` (in a new figure, a caption under the legend says what the colours and crosses
+        are).
 
     Examples:
         >>> import torch
@@ -76,8 +78,9 @@ def plot_segmentation(
     colors = [base(i % base.N) for i in range(K)]
     image = np.ma.masked_array(opts[:rows, :T_show], ~valid[:rows, :T_show])
     cmap = ListedColormap(colors).with_extremes(bad="white")
-    if ax is None:
-        fig, ax = plt.subplots(figsize=(10, 0.45 * rows + 1.4))
+    own_figure = ax is None
+    if own_figure:
+        fig, ax = plt.subplots(figsize=(10, 0.45 * rows + 2.0))
     else:
         fig = ax.figure
     ax.imshow(image, aspect="auto", interpolation="nearest", cmap=cmap, vmin=-0.5, vmax=K - 0.5,
@@ -100,9 +103,18 @@ def plot_segmentation(
         handles.append(ax.collections[-1])
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.12 if rows > 3 else -0.3),
               ncol=min(len(handles), 6), frameon=False, fontsize=8)
-    if title:
-        ax.set_title(title)
-    fig.tight_layout()
+    ax.set_title(title or f"Segmentation of {rows} trajectories into {K} options")
+    if own_figure:  # a caption under the legend says what the picture shows
+        caption = (
+            "Each row is one trajectory, each cell one step, coloured by the option the segmentation assigns to it "
+            "(white: padding after the trajectory's end)."
+        )
+        if reference is not None:
+            caption += " Crosses: the reference boundaries (a new segment starts at that step)."
+        fig.text(0.01, 0.01, "\n".join(textwrap.wrap(caption, 150)), fontsize=8, va="bottom", ha="left")
+        fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
+    else:
+        fig.tight_layout()
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
