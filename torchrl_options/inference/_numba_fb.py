@@ -2,8 +2,9 @@
 
 The reference recursion (:func:`torchrl_options.inference.forward_backward._forward_backward_reference`) takes a
 dozen small PyTorch operations per time step, so on a CPU its cost is per-operation overhead, not arithmetic. Here
-the whole time loop of one trajectory runs in compiled code, one trajectory per thread (``numba.prange`` over the
-batch), with the row's working set (four ``[T, K]`` float64 buffers) held in the core's cache:
+the whole time loop of one trajectory runs in compiled code that releases the GIL, the batch split into contiguous
+blocks of rows across ``torch.get_num_threads()`` Python threads, with a row's working set (four ``[T, K]`` float64
+buffers) held in the core's cache:
 
 1. *Factors*, per transition ``t`` (step ``t`` to ``t + 1``), exponentiated once in float64 after subtracting the
    step's largest log-factor ``m_t``: ``D = exp(log_pi + log_cont - m_t)`` (stay), ``C = exp(log_pi + log_term +
@@ -16,10 +17,12 @@ batch), with the row's working set (four ``[T, K]`` float64 buffers) held in the
    never stored.
 
 Float64 leaves about 700 nats of room below each step's largest term. The kernel also carries which entries are
-mathematically non-zero (from the ``-inf`` pattern of the inputs) and flags a row if any such entry of a normalised
-message falls below ``1e-150`` (or a normaliser below ``1e-290``): below that, float64 rounding could lose a
-probability that later matters. Flagged rows (extreme, near-deterministic inputs only) are recomputed by the
-reference in log space by the caller, so the result is always the reference's to rounding.
+mathematically non-zero (from the ``-inf`` pattern of the inputs) and flags a row if a finite log-factor falls
+below that room, if any such entry of a normalised message falls below ``1e-150``, a step's normaliser below
+``1e-100`` or ``sum_h alpha_t(h) beta_t(h)`` below ``1e-200``: past these, what float64 drops (products below
+1e-308) could be a probability that later matters. Flagged rows (extreme, near-deterministic inputs only, and
+rows of zero likelihood) are recomputed by the reference in log space by the caller, so the result is always the
+reference's to rounding.
 
 Compilation: the first call per input dtype compiles the kernel (a few seconds, once per machine): the kernels are
 cached on disk (``cache=True``) where Numba finds a writable place, in this order: ``$NUMBA_CACHE_DIR`` if set, the
@@ -40,9 +43,11 @@ __all__ = ["numba_available", "numba_forward_backward", "numba_expectation_gradi
 
 logger = logging.getLogger(__name__)
 
-# Every non-zero factor, normalised message entry and normaliser must stay above this (so that no product of three
-# underflows); otherwise the row is recomputed by the reference (see the module docstring).
-_FLOOR = 1e-100
+# Below these the kernel cannot certify float64's precision and flags the row for the reference: a mathematically
+# non-zero entry of a normalised message, a step's normaliser, and sum_h alpha_t(h) beta_t(h).
+_FLOOR = 1e-150
+_Z_FLOOR = 1e-100
+_S_FLOOR = 1e-200
 
 
 _NUMBA = None  # the imported module, False when unavailable, None before the first check
@@ -128,7 +133,7 @@ def numba_forward_backward(
     w = torch.zeros_like(u)
     ll = torch.empty(B, dtype=torch.float64)
     bad = torch.zeros(B, dtype=torch.bool)
-    args = (*xs, lengths, term, ll.numpy(), u.numpy(), v.numpy(), w.numpy(), bad.numpy(), _FLOOR)
+    args = (*xs, lengths, term, ll.numpy(), u.numpy(), v.numpy(), w.numpy(), bad.numpy(), _FLOOR, _Z_FLOOR, _S_FLOOR)
     _run_rows(k.fb_rows, args, lengths)
     return ll.to(log_pi.dtype), u, v, w, bad
 

@@ -1,7 +1,9 @@
 """The Numba kernels of :mod:`._numba_fb` (imported only when Numba is installed).
 
 Everything is float64 inside, whatever the inputs' dtype. ``fastmath`` allows reassociation and contraction (so
-the loops over K vectorise) but not ``nnan`` / ``ninf``: ``-inf`` log-probabilities must stay exact zeros.
+the loops over K vectorise) and assumes no NaN (the inputs are validated, padding is zeroed), but not ``ninf``:
+``-inf`` log-probabilities must stay exact zeros; and not ``arcp``: ``u`` is a true quotient, so that it is
+exactly 1 where a single option is possible.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
-_FASTMATH = {"nnan", "contract", "reassoc", "arcp", "nsz"}
+_FASTMATH = {"nnan", "contract", "reassoc", "nsz"}
 
 # exp(x) for x <= 0: x = k ln2 + r, |r| <= ln2 / 2 (Cody-Waite, fdlibm's split of ln2), exp(r) by its Taylor
 # series to degree 13 (truncation below 1e-17 relative), 2^k from the exponent bits. Below -708 (where 2^k would
@@ -73,21 +75,22 @@ def _exp_nonpos(x):
 
 
 @_jit(inline="always", fastmath=_FASTMATH)
-def _factor(x, floor):
-    """``(exp(x), bad)`` for a shifted log-factor ``x <= 0``: ``bad`` when x is finite but exp(x) < floor."""
+def _factor(x):
+    """``(exp(x), bad)`` for a shifted log-factor ``x <= 0``: ``bad`` when x is finite but exp(x) flushed to 0."""
     f = _exp_nonpos(x)
-    return f, (f < floor) & (x > -np.inf)
+    return f, (f == 0.0) & (x > -np.inf)
 
 
 @_jit(nogil=True, fastmath=_FASTMATH)
-def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, b1):
+def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zfloor, sfloor, b0, b1):
     """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), the
     valid steps of ``u``, ``v``, ``w`` (the rest is left as is: the caller passes zeros) and ``bad`` [B].
 
-    Invariant checked on the way (else the row is flagged): every factor, normalised message entry and
-    normaliser is either exactly 0 (its log-probability is -inf) or at least ``floor``. With ``floor >= 1e-100``
-    no product of up to three of them underflows, so exact zeros are exactly the impossible events and every
-    positive quantity carries float64's relative precision."""
+    Invariants checked on the way (else the row is flagged): a factor is 0 only where its log-probability is
+    -inf; every entry of a normalised message that is mathematically non-zero (tracked from the -inf pattern) is
+    at least ``floor``; each step's normaliser is at least ``zfloor`` and ``sum_h alpha_t(h) beta_t(h)`` at least
+    ``sfloor``. Then what float64 drops (products below 1e-308) is negligible against every kept quantity, and
+    every non-zero output carries float64's relative precision."""
     K = lp.shape[2]
     for b in range(b0, b1):
         L = lengths[b]
@@ -99,6 +102,7 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
         sw = np.empty(L)  # switching mass of transition t
         zs = np.empty(L)  # normaliser of transition t
         n = np.empty(K)
+        sup = np.empty(K, dtype=np.bool_)  # the entries of the current message that are mathematically non-zero
         flag = False
 
         # --- 1. factors, all transitions (no dependency between steps) ----------------------------------------
@@ -117,9 +121,9 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
             shift[t] = m
             for h in range(K):
                 p = np.float64(lp[b, t, h])
-                d, bd = _factor(p + np.float64(lc[b, t, h]) - m, floor)
-                c, bc = _factor(p + np.float64(lt[b, t, h]) + me - m, floor)
-                e, be = _factor(np.float64(le[b, t + 1, h]) - me, floor)
+                d, bd = _factor(p + np.float64(lc[b, t, h]) - m)
+                c, bc = _factor(p + np.float64(lt[b, t, h]) + me - m)
+                e, be = _factor(np.float64(le[b, t + 1, h]) - me)
                 flag |= bd | bc | be
                 D[t, h] = d
                 C[t, h] = c
@@ -133,9 +137,10 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
             me = 0.0
         z = 0.0
         for h in range(K):
-            e, be = _factor(np.float64(le[b, 0, h]) - me, floor)
+            e, be = _factor(np.float64(le[b, 0, h]) - me)
             flag |= be
             n[h] = e
+            sup[h] = e > 0.0
             z += e
         log_lik = me + math.log(z)
         rz = 1.0 / z
@@ -144,19 +149,23 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
         prod = 1.0  # product of the normalisers since the last log
         for t in range(L - 1):
             s = 0.0
+            ssup = False
             for h in range(K):
                 s += A[t, h] * C[t, h]
+                ssup |= sup[h] & (C[t, h] > 0.0)
             z = 0.0
             for h in range(K):
                 x = s * E[t, h] + A[t, h] * D[t, h]
                 n[h] = x
                 z += x
-            flag |= not (z >= floor)
+            flag |= not (z >= zfloor)
             rz = 1.0 / z
             for h in range(K):
                 a = n[h] * rz
                 A[t + 1, h] = a
-                flag |= (a > 0.0) & (a < floor)
+                sh = (ssup & (E[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
+                sup[h] = sh
+                flag |= sh & (a < floor)
             sw[t] = s
             zs[t] = z
             log_lik += shift[t]
@@ -182,12 +191,13 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
             x = np.float64(lp[b, last, h])
             if terminal[b]:
                 x += np.float64(lt[b, last, h])
-            f, bf = _factor(x - mf, floor)
+            f, bf = _factor(x - mf)
             flag |= bf
             n[h] = f
+            sup[h] = f > 0.0
             zf += f
             za += A[last, h] * f
-        flag |= not (za >= floor)
+        flag |= not (za >= zfloor)
         ll_out[b] = log_lik + mf + math.log(za)
         if flag:
             bad[b] = True
@@ -203,36 +213,40 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, b0, 
             S += A[last, h] * x
         rS = 1.0 / S
         for h in range(K):
-            u[b, last, h] = A[last, h] * bv[h] * rS
+            u[b, last, h] = (A[last, h] * bv[h]) / S
         for t in range(L - 2, -1, -1):
             # marginals of transition t, from beta_{t+1} and S_{t+1} = sum a_{t+1} beta_{t+1}: with
             # n_{t+1} = s E + a_t D = z a_{t+1}, v_{t+1} = (s E / z) beta / S and w_t = (a_t D / z) beta / S.
             rz = 1.0 / zs[t]
             qs = sw[t] * rz
             g = 0.0
+            gsup = False
             for h in range(K):
                 e = E[t, h]
                 x = bv[h]
                 v[b, t + 1, h] = (qs * e) * x * rS
                 w[b, t, h] = (A[t, h] * D[t, h] * rz) * x * rS
                 g += e * x
+                gsup |= sup[h] & (e > 0.0)
             z = 0.0
             for h in range(K):
                 x = C[t, h] * g + D[t, h] * bv[h]
                 n[h] = x
                 z += x
-            flag |= not (z >= floor)
+            flag |= not (z >= zfloor)
             rz = 1.0 / z
             S = 0.0
             for h in range(K):
                 x = n[h] * rz
-                flag |= (x > 0.0) & (x < floor)
+                sh = (gsup & (C[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
+                sup[h] = sh
+                flag |= sh & (x < floor)
                 bv[h] = x
                 S += A[t, h] * x
-            flag |= not (S >= floor)
+            flag |= not (S >= sfloor)
             rS = 1.0 / S
             for h in range(K):
-                u[b, t, h] = A[t, h] * bv[h] * rS
+                u[b, t, h] = (A[t, h] * bv[h]) / S
         for h in range(K):
             v[b, 0, h] = u[b, 0, h]
         if flag:
