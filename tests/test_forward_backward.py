@@ -133,6 +133,8 @@ def test_float32_matches_float64(backend):
 
 def test_long_float32_trajectory_is_stable(backend):
     """100,000 steps, near-deterministic probabilities and -inf entries: finite and normalised, no clipping."""
+    if backend == "reference":
+        pytest.skip("the reference takes about 40 s here; test_chunked_stable_100k_steps_float32 compares it on a prefix")
     B, T, K = 2, 100_000, 4
     g = torch.Generator().manual_seed(0)
     logits = torch.randn(B, T, K, generator=g) * 30  # near-deterministic choices

@@ -29,6 +29,9 @@ _EXP_MIN = -708.0
 def _jit(**kwargs):
     """``numba.njit`` with the on-disk cache where Numba finds a writable place for it, in memory otherwise."""
 
+    # error_model="numpy": a division by zero gives inf (a row of zero likelihood is flagged, not raised).
+    kwargs.setdefault("error_model", "numpy")
+
     def wrap(fn):
         try:
             return numba.njit(cache=True, **kwargs)(fn)
