@@ -128,9 +128,9 @@ def numba_forward_backward(
     xs = [x.detach().contiguous().numpy() for x in (log_pi, log_term, log_cont, log_eta)]
     lengths = mask.sum(1).to(torch.int64).contiguous().numpy()
     term = terminal.to(torch.bool).contiguous().numpy()
-    u = torch.zeros(B, T, K, dtype=log_pi.dtype)
-    v = torch.zeros_like(u)
-    w = torch.zeros_like(u)
+    u = torch.empty(B, T, K, dtype=log_pi.dtype)  # every entry is written by the kernel
+    v = torch.empty_like(u)
+    w = torch.empty_like(u)
     ll = torch.empty(B, dtype=torch.float64)
     bad = torch.zeros(B, dtype=torch.bool)
     args = (*xs, lengths, term, ll.numpy(), u.numpy(), v.numpy(), w.numpy(), bad.numpy(), _FLOOR, _Z_FLOOR, _S_FLOOR)

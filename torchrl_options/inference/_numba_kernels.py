@@ -86,8 +86,8 @@ def _factor(x):
 
 @_jit(nogil=True, fastmath=_FASTMATH)
 def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zfloor, sfloor, b0, b1):
-    """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), the
-    valid steps of ``u``, ``v``, ``w`` (the rest is left as is: the caller passes zeros) and ``bad`` [B].
+    """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), ``u``,
+    ``v``, ``w`` (zeros on padding) and ``bad`` [B] (the caller passes False; a flagged row's u, v, w are partial).
 
     Invariants checked on the way (else the row is flagged): a factor is 0 only where its log-probability is
     -inf; every entry of a normalised message that is mathematically non-zero (tracked from the -inf pattern) is
@@ -202,6 +202,14 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             za += A[last, h] * f
         flag |= not (za >= zfloor)
         ll_out[b] = log_lik + mf + math.log(za)
+        # padding, and w at the last valid step, are zeros
+        for t in range(L, u.shape[1]):
+            for h in range(K):
+                u[b, t, h] = 0.0
+                v[b, t, h] = 0.0
+                w[b, t, h] = 0.0
+        for h in range(K):
+            w[b, last, h] = 0.0
         if flag:
             bad[b] = True
             continue
