@@ -10,7 +10,9 @@ What is timed, on the same float32 inputs (full-length rows, non-terminal):
 
 Method: per thread count, per shape, one warm-up call of each (its time is printed as ``first``), then ``--reps``
 rounds in each of which every contender runs once, in turn (interleaved, so that load from other processes hits all
-of them alike); the table gives the median of the rounds and ``baseline / backend`` of the medians. The memory floor
+of them alike); the table gives the median wall time of the rounds, ``baseline / backend`` of the medians, and the
+median process CPU time (all threads; on a loaded machine, with one thread, the closer figure to an idle machine's
+wall time, since time spent waiting for a core is not counted). The memory floor
 is the time to read the four inputs and write u, v, w once (``7 B T K`` elements) at the bandwidth of a large
 ``copy_`` measured with the same thread count; ``x floor`` is the backend's median over that.
 
@@ -79,11 +81,12 @@ def run_once(name, xs):
 
 
 def timed(name, xs, device):
+    """(wall, process CPU) seconds of one call."""
     sync(device)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     run_once(name, xs)
     sync(device)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def copy_bandwidth(device, nbytes=2**28):
@@ -169,24 +172,25 @@ def main(argv=None):
         bw = copy_bandwidth(device)
         print(f"\nthreads={torch.get_num_threads()}; copy bandwidth {bw / 1e9:.1f} GB/s; {load()}")
         header = (f"{'B':>5} {'T':>6} {'K':>4}  {'backend':<16} {'first [ms]':>10} {'median [ms]':>11} "
-                  f"{'vs baseline':>11} {'x floor':>8}")  # fmt: skip
+                  f"{'vs baseline':>11} {'x floor':>8} {'CPU [ms]':>9}")  # fmt: skip
         print(header)
         print("-" * len(header))
         for B, T, K in shapes:
             xs = make_inputs(B, T, K, device)
             floor = 7 * B * T * K * xs[0].element_size() / bw
-            first = {name: timed(name, xs, device) for name in backends}
+            first = {name: timed(name, xs, device)[0] for name in backends}
             times = {name: [] for name in backends}
             for _ in range(args.reps):
                 for name in backends:
                     times[name].append(timed(name, xs, device))
-            med = {name: statistics.median(ts) for name, ts in times.items()}
+            med = {name: statistics.median(t[0] for t in ts) for name, ts in times.items()}
+            cpu = {name: statistics.median(t[1] for t in ts) for name, ts in times.items()}
             base = med.get("baseline")
             for name in backends:
                 label = f"auto->{resolve_backend('auto', xs[0])}" if name == "auto" else name
                 ratio = f"{base / med[name]:10.1f}x" if base else f"{'-':>11}"
                 print(f"{B:>5} {T:>6} {K:>4}  {label:<16} {first[name] * 1e3:>10.1f} {med[name] * 1e3:>11.2f} "
-                      f"{ratio} {med[name] / floor:>7.1f}x")  # fmt: skip
+                      f"{ratio} {med[name] / floor:>7.1f}x {cpu[name] * 1e3:>9.2f}")  # fmt: skip
             print(f"{'':>18}memory floor: {7 * B * T * K * xs[0].element_size() / 1e6:.1f} MB (4 inputs read, u, v, w "
                   f"written) / {bw / 1e9:.1f} GB/s = {floor * 1e3:.2f} ms")  # fmt: skip
 
