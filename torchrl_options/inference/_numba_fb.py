@@ -32,6 +32,7 @@ kernels are compiled in memory in each process instead (see :mod:`._numba_kernel
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -94,20 +95,26 @@ def _split_rows(lengths, parts: int) -> list[tuple[int, int]]:
 
 
 _POOL: ThreadPoolExecutor | None = None
+_POOL_PID = -1  # the process that made _POOL (a forked child has no worker threads: it makes its own)
+_POOL_SIZE = 0
 _POOL_LOCK = threading.Lock()
 
 
 def _run_rows(fn, args, lengths) -> None:
     """``fn(*args, b0, b1)`` over the batch, split across ``torch.get_num_threads()`` threads (the kernels release
     the GIL). Rows are independent, so the result does not depend on the split."""
-    global _POOL
+    global _POOL, _POOL_PID, _POOL_SIZE
     ranges = _split_rows(lengths, torch.get_num_threads())
     if len(ranges) == 1:
         fn(*args, *ranges[0])
         return
     with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers < len(ranges):
-            _POOL = ThreadPoolExecutor(max_workers=len(ranges), thread_name_prefix="torchrl_options_fb")
+        if _POOL is None or _POOL_PID != os.getpid() or _POOL_SIZE < len(ranges) - 1:
+            if _POOL is not None and _POOL_PID == os.getpid():
+                _POOL.shutdown(wait=False)
+            _POOL_SIZE = len(ranges) - 1
+            _POOL = ThreadPoolExecutor(max_workers=_POOL_SIZE, thread_name_prefix="torchrl_options_fb")
+            _POOL_PID = os.getpid()
         pool = _POOL
     futures = [pool.submit(fn, *args, b0, b1) for b0, b1 in ranges[1:]]
     fn(*args, *ranges[0])
