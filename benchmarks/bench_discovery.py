@@ -16,10 +16,13 @@ benchmark checks that the converged value is within ``--reference-gap`` (0.01) n
     python benchmarks/bench_discovery.py --threads 1
     python benchmarks/bench_discovery.py --threads 2 --reference-iterations 600
     python benchmarks/bench_discovery.py --m-steps 1 --lr 0.1 --iterations 400 --tol 0   # the old schedule
+    python benchmarks/bench_discovery.py --threads 2 --no-numba   # as without the `fast` extra (E-step "chunked")
+    python benchmarks/bench_discovery.py --threads 2 --e-step reference   # any E-step backend in place of "auto"
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import time
 
@@ -65,12 +68,21 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--reference-iterations", type=int, default=0, help="also run this long without stopping")
     p.add_argument("--reference-gap", type=float, default=0.01)
+    p.add_argument("--no-numba", action="store_true", help="run as if Numba were not installed (before/after)")
+    p.add_argument("--e-step", default="auto", help="the forward_backward backend that 'auto' stands for")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    fb = importlib.import_module("torchrl_options.inference.forward_backward")
+    if args.no_numba:
+        fb.numba_available = lambda: False
+    if args.e_step != "auto":
+        resolve = fb.resolve_backend
+        fb.resolve_backend = lambda backend, x: resolve(args.e_step if backend == "auto" else backend, x)
+    e_step = fb.resolve_backend("auto", torch.zeros(args.trajectories, args.length, args.options))
     print(
         f"threads={torch.get_num_threads()}, {os.cpu_count()} CPUs, OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}, "
-        f"{_load()} at start"
+        f"{_load()} at start; E-step backend: {e_step}"
     )
     t0 = time.perf_counter()
     data = generate_demonstrations("four-rooms", args.trajectories, args.length, seed=args.seed)

@@ -1,31 +1,49 @@
-"""Benchmark of the DDO E-step: forward pass + gradient (= the marginals) of ``forward_backward``.
+"""Benchmark of the DDO E-step: forward pass + gradient of ``forward_backward`` against a careful batched baseline.
 
-Compares, in one run and on the same inputs:
+What is timed, on the same float32 inputs (full-length rows, non-terminal):
 
-* ``naive``: the straightforward batched log-space loop that builds the [B, K, K] log-transition matrix and takes a
-  logsumexp per step; the marginals come from autograd (``torch.autograd.grad`` of the log-likelihood);
-* ``reference``: ``forward_backward(..., backend="reference")``, the one-step-at-a-time O(K) recursion;
-* ``chunked``: the time-parallel CPU path; ``triton``: the fused GPU kernel (CUDA only); ``auto``: the default.
+* ``baseline``: the batched log-space loop that builds the ``[B, K, K]`` log-transition matrix at every step
+  (``log pi_h + log(psi_h eta_h' + (1 - psi_h) [h = h'])``) and takes a ``logsumexp`` over the previous option,
+  then ``torch.autograd.grad`` of the summed log-likelihood with respect to ``log_pi`` (which is the marginals u);
+* each backend of ``forward_backward(..., validate=False, backend=...)`` (``reference``, ``chunked``, ``numba``,
+  ``triton`` on CUDA, and ``auto``): the forward pass and ``torch.autograd.grad`` with respect to all four inputs.
 
-Prints time (best of ``--repeats`` after a warm-up call, whose time is reported separately as ``first``),
-throughput in B*T*K cells per second, and the ratio of the naive time to each. On CUDA it also prints the
-memory-bandwidth floor: reading the four inputs and writing u, v, w once, at the bandwidth of a device copy.
+Method: per thread count, per shape, one warm-up call of each (its time is printed as ``first``), then ``--reps``
+rounds in each of which every contender runs once, in turn (interleaved, so that load from other processes hits all
+of them alike); the table gives the median wall time of the rounds, ``baseline / backend`` of the medians, and the
+median process CPU time (all threads; on a loaded machine, with one thread, the closer figure to an idle machine's
+wall time, since time spent waiting for a core is not counted). The memory floor
+is the time to read the four inputs and write u, v, w once (``7 B T K`` elements) at the bandwidth of a large
+``copy_`` measured with the same thread count; ``x floor`` is the backend's median over that.
 
-    python benchmarks/bench_forward_backward.py                    # CPU: (64,1000,8) and (64,1000,32)
-    python benchmarks/bench_forward_backward.py --device cuda      # adds (4096,1000,16)
-    python benchmarks/bench_forward_backward.py --shapes 16,200,4 --repeats 5 --threads 1
+    python benchmarks/bench_forward_backward.py                       # CPU, 1 and 2 threads, the issue's shapes
+    python benchmarks/bench_forward_backward.py --threads 1 --shapes "64,1000,8;16,100,4"
+    python benchmarks/bench_forward_backward.py --compile-time        # also Numba's first-call time, cold and cached
+    python benchmarks/bench_forward_backward.py --device cuda         # adds (4096, 1000, 16) and the Triton kernel
 """
 from __future__ import annotations
 
 import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
-import torch
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP waits distort timings on a shared machine
 
-from torchrl_options.inference.forward_backward import forward_backward, resolve_backend
+import torch  # noqa: E402
+
+from torchrl_options.inference.forward_backward import (  # noqa: E402
+    forward_backward,
+    numba_available,
+    resolve_backend,
+    triton_available,
+)
 
 
-def naive_log_likelihood(log_pi, log_term, log_cont, log_eta):
+def baseline_log_likelihood(log_pi, log_term, log_cont, log_eta):
     """The baseline: a batched log-space loop over the full [B, K, K] transition matrix (full-length rows)."""
     B, T, K = log_pi.shape
     log_eye = torch.eye(K, dtype=log_pi.dtype, device=log_pi.device).log()  # 0 on the diagonal, -inf elsewhere
@@ -55,84 +73,126 @@ def sync(device):
 
 
 def run_once(name, xs):
-    if name == "naive":
-        ll = naive_log_likelihood(*xs)
-    else:
-        ll = forward_backward(*xs, backend=name, validate=False).log_likelihood
+    if name == "baseline":
+        ll = baseline_log_likelihood(*xs)
+        return torch.autograd.grad(ll.sum(), xs[0])
+    ll = forward_backward(*xs, backend=name, validate=False).log_likelihood
     return torch.autograd.grad(ll.sum(), xs)
 
 
-def time_it(name, xs, repeats, device):
+def timed(name, xs, device):
+    """(wall, process CPU) seconds of one call."""
     sync(device)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     run_once(name, xs)
     sync(device)
-    first = time.perf_counter() - t0
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run_once(name, xs)
-        sync(device)
-        best = min(best, time.perf_counter() - t0)
-    return first, best
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
-def copy_bandwidth(device, nbytes=2**30):
-    x = torch.empty(nbytes // 4, device=device)
+def copy_bandwidth(device, nbytes=2**28):
+    """Bytes read + written per second by a large ``copy_`` (best of 5), with the current thread count."""
+    x = torch.ones(nbytes // 4, device=device)
     y = torch.empty_like(x)
     y.copy_(x)
-    sync(device)
-    t0 = time.perf_counter()
+    best = float("inf")
     for _ in range(5):
+        sync(device)
+        t0 = time.perf_counter()
         y.copy_(x)
-    sync(device)
-    return 2 * nbytes * 5 / (time.perf_counter() - t0)  # bytes read + written per second
+        sync(device)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * nbytes / best
+
+
+def load() -> str:
+    try:
+        return "load average %.2f %.2f %.2f" % os.getloadavg()
+    except OSError:  # pragma: no cover
+        return "load average unavailable"
+
+
+_FIRST_CALL = """
+import time, torch
+t0 = time.perf_counter()
+from torchrl_options import forward_backward
+t1 = time.perf_counter()
+x = torch.randn(2, 8, 3).log_softmax(-1)
+for dtype in (torch.float32, torch.float64):
+    xs = [x.to(dtype).requires_grad_() for _ in range(4)]
+    out = forward_backward(*xs, backend="numba")
+    out.log_likelihood.sum().backward()
+print(f"{t1 - t0:.2f} {time.perf_counter() - t1:.2f}")
+"""
+
+
+def numba_first_call_times() -> tuple[str, str]:
+    """Seconds for a fresh process's first ``backend="numba"`` calls (forward + gradient, float32 and float64),
+    with an empty Numba cache (compilation) and then with the cache it left (loading)."""
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for _ in range(2):
+            res = subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, capture_output=True, text=True)
+            if res.returncode:
+                raise RuntimeError(res.stderr)
+            out.append(res.stdout.split()[1])
+    return out[0], out[1]
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
     p.add_argument("--shapes", default=None, help="semicolon-separated B,T,K (default: the issue's shapes)")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--naive-repeats", type=int, default=1, help="repeats of the (slow) naive baseline")
-    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (CPU)")
-    p.add_argument("--backends", default="naive,reference,chunked,triton,auto")
+    p.add_argument("--reps", type=int, default=5, help="interleaved rounds after the warm-up")
+    p.add_argument("--threads", default="1,2", help="comma-separated thread counts (torch.set_num_threads)")
+    p.add_argument("--backends", default=None, help="default: baseline and every backend that can run, and auto")
+    p.add_argument("--compile-time", action="store_true", help="also time Numba's first call in a fresh process")
     args = p.parse_args(argv)
     device = torch.device(args.device)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     if args.shapes:
         shapes = [tuple(int(v) for v in s.split(",")) for s in args.shapes.split(";")]
     else:
         shapes = [(64, 1000, 8), (64, 1000, 32)] + ([(4096, 1000, 16)] if device.type == "cuda" else [])
-    backends = args.backends.split(",")
-    if device.type != "cuda":
-        backends = [b for b in backends if b != "triton"]
-    print(f"device={device} threads={torch.get_num_threads()} torch={torch.__version__}")
+    if args.backends:
+        backends = args.backends.split(",")
+    else:
+        backends = ["baseline", "reference", "chunked"]
+        backends += ["numba"] if device.type == "cpu" and numba_available() else []
+        backends += ["triton"] if device.type == "cuda" and triton_available(device) else []
+        backends += ["auto"]
+    print(f"device={device} torch={torch.__version__} numba={'yes' if numba_available() else 'no'}; {load()}")
     if device.type == "cuda":
         print(f"gpu={torch.cuda.get_device_name(device)}")
+    if args.compile_time and numba_available():
+        cold, warm = numba_first_call_times()
+        print(f"numba first call (fresh process, forward + gradient, float32 and float64): {cold} s with an empty "
+              f"cache (compilation), {warm} s with the cache (loading)")  # fmt: skip
+    for threads in [int(n) for n in args.threads.split(",")]:
+        torch.set_num_threads(threads)
         bw = copy_bandwidth(device)
-        print(f"device copy bandwidth: {bw / 1e9:.0f} GB/s")
-    header = f"{'B':>5} {'T':>6} {'K':>4}  {'backend':<18} {'first [s]':>10} {'time [s]':>10} {'Mcells/s':>10} {'vs naive':>9}"
-    print(header)
-    print("-" * len(header))
-    for B, T, K in shapes:
-        xs = make_inputs(B, T, K, device)
-        cells = B * T * K
-        naive_time = None
-        for name in backends:
-            label = f"auto->{resolve_backend('auto', xs[0])}" if name == "auto" else name
-            reps = args.naive_repeats if name == "naive" else args.repeats
-            first, best = time_it(name, xs, reps, device)
-            if name == "naive":
-                naive_time = best
-            ratio = f"{naive_time / best:8.1f}x" if naive_time else f"{'-':>9}"
-            print(f"{B:>5} {T:>6} {K:>4}  {label:<18} {first:>10.4f} {best:>10.4f} {cells / best / 1e6:>10.1f} {ratio}")
-        if device.type == "cuda":
-            nbytes = 7 * cells * xs[0].element_size()
-            floor = nbytes / bw
-            print(f"{'':>18}memory floor: {nbytes / 1e9:.2f} GB (4 inputs read, u/v/w written) / {bw / 1e9:.0f} GB/s "
-                  f"= {floor * 1e3:.2f} ms; 10x floor = {10 * floor * 1e3:.1f} ms")
+        print(f"\nthreads={torch.get_num_threads()}; copy bandwidth {bw / 1e9:.1f} GB/s; {load()}")
+        header = (f"{'B':>5} {'T':>6} {'K':>4}  {'backend':<16} {'first [ms]':>10} {'median [ms]':>11} "
+                  f"{'vs baseline':>11} {'x floor':>8} {'CPU [ms]':>9}")  # fmt: skip
+        print(header)
+        print("-" * len(header))
+        for B, T, K in shapes:
+            xs = make_inputs(B, T, K, device)
+            floor = 7 * B * T * K * xs[0].element_size() / bw
+            first = {name: timed(name, xs, device)[0] for name in backends}
+            times = {name: [] for name in backends}
+            for _ in range(args.reps):
+                for name in backends:
+                    times[name].append(timed(name, xs, device))
+            med = {name: statistics.median(t[0] for t in ts) for name, ts in times.items()}
+            cpu = {name: statistics.median(t[1] for t in ts) for name, ts in times.items()}
+            base = med.get("baseline")
+            for name in backends:
+                label = f"auto->{resolve_backend('auto', xs[0])}" if name == "auto" else name
+                ratio = f"{base / med[name]:10.1f}x" if base else f"{'-':>11}"
+                print(f"{B:>5} {T:>6} {K:>4}  {label:<16} {first[name] * 1e3:>10.1f} {med[name] * 1e3:>11.2f} "
+                      f"{ratio} {med[name] / floor:>7.1f}x {cpu[name] * 1e3:>9.2f}")  # fmt: skip
+            print(f"{'':>18}memory floor: {7 * B * T * K * xs[0].element_size() / 1e6:.1f} MB (4 inputs read, u, v, w "
+                  f"written) / {bw / 1e9:.1f} GB/s = {floor * 1e3:.2f} ms")  # fmt: skip
 
 
 if __name__ == "__main__":

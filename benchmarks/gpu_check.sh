@@ -19,6 +19,6 @@ nvidia-smi --query-gpu=name,memory.used --format=csv
 python3 -m pytest -q -p no:cacheprovider -m gpu tests 2>&1 | tee "$OUT_DIR/pytest_gpu.log" | tail -3
 python3 benchmarks/bench_triton_fb.py 2>&1 | tee "$OUT_DIR/triton.log"
 python3 benchmarks/bench_forward_backward.py --device cuda --shapes "4096,1000,16;64,1000,8;64,1000,32" \
-  --backends naive,reference,triton,auto 2>&1 | tee "$OUT_DIR/fb.log"
+  --threads 1 --backends baseline,reference,triton,auto 2>&1 | tee "$OUT_DIR/fb.log"
 python3 recipes/atari_ram.py preset=smoke game=Seaquest atari.device=cuda out_dir=/tmp/gpu_check_smoke \
   > "$OUT_DIR/smoke.log" 2>&1 && echo "atari smoke on cuda: ok" || { echo "atari smoke on cuda: FAILED"; tail -20 "$OUT_DIR/smoke.log"; }

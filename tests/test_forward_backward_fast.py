@@ -1,4 +1,4 @@
-"""The fast E-step backends ("chunked", "triton") against the reference forward-backward."""
+"""The fast E-step backends ("chunked", "numba", "triton") against the reference forward-backward."""
 from __future__ import annotations
 
 import importlib.util
@@ -11,14 +11,20 @@ import pytest
 import torch
 
 import torchrl_options.inference._chunked as chunked_mod
+import torchrl_options.inference._numba_fb as numba_mod
 from torchrl_options.inference.forward_backward import (
     _forward_backward_reference,
     forward_backward,
+    numba_available,
     resolve_backend,
 )
 
 HAS_TRITON = importlib.util.find_spec("triton") is not None
 HAS_CUDA = torch.cuda.is_available()
+HAS_NUMBA = numba_available()
+# the module (the package's attribute of that name is the function)
+fb_mod = importlib.import_module("torchrl_options.inference.forward_backward")
+needs_numba = pytest.mark.skipif(not HAS_NUMBA, reason="numba is not installed")
 
 
 def make_case(B, T, K, dtype=torch.float32, *, pad=True, ninf=0.0, sharp=1.0, seed=0, device="cpu"):
@@ -165,8 +171,8 @@ def test_backend_argument():
     xs, mask, terminal = make_case(2, 20, 3, pad=False)
     with pytest.raises(ValueError, match="backend"):
         forward_backward(*xs, backend="fast")
-    assert resolve_backend("auto", xs[0]) == "chunked"
-    assert resolve_backend("auto", xs[0][:, :4]) == "reference"
+    assert resolve_backend("auto", xs[0]) == ("numba" if HAS_NUMBA else "chunked")
+    assert resolve_backend("auto", xs[0][:, :4]) == ("numba" if HAS_NUMBA else "reference")
     if not (HAS_TRITON and os.environ.get("TRITON_INTERPRET", "0") not in ("", "0")):
         with pytest.raises(ValueError, match="triton"):
             forward_backward(*xs, backend="triton")
@@ -201,6 +207,178 @@ def test_chunked_stable_100k_steps_float32():
     ref = forward_backward(*(x[:, :n] for x in xs), terminal=True, backend="reference")
     out = forward_backward(*(x[:, :n] for x in xs), terminal=True, backend="chunked")
     assert_close_outputs(ref, out, torch.float32)
+
+
+def _zeroed(xs, mask):
+    return tuple(torch.where(mask[..., None], x, 0.0) for x in xs)
+
+
+@needs_numba
+@pytest.mark.parametrize("B,T,K,dtype,pad,ninf,sharp", CASES)
+def test_numba_matches_reference(B, T, K, dtype, pad, ninf, sharp):
+    xs, mask, terminal = make_case(B, T, K, dtype, pad=pad, ninf=ninf, sharp=sharp, seed=T * K)
+    ref = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
+    out = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
+    assert_close_outputs(ref, out, dtype)
+    # the kernel itself, not the fallback, produced these
+    m = torch.ones(B, T, dtype=torch.bool) if mask is None else mask
+    *_, bad = numba_mod.numba_forward_backward(*_zeroed(xs, m), m, terminal)
+    assert not bad.any()
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_gradients_equal_reference(dtype):
+    xs, mask, terminal = make_case(6, 120, 4, dtype, ninf=0.1, seed=3)
+    weights = torch.rand(6, dtype=dtype)
+    grads = {}
+    for backend in ("reference", "numba"):
+        grads[backend], out = weighted_gradients(xs, mask, terminal, weights, backend)
+    # the compiled gradient pass is the Expectation-Gradient of the kernel's own marginals, exactly
+    g = weights.view(-1, 1, 1)
+    last = mask.sum(1) - 1
+    steps = torch.arange(mask.shape[1])
+    term_weight = (steps < last[:, None]) | ((steps == last[:, None]) & terminal[:, None])
+    exact = dict(rtol=0, atol=0)
+    torch.testing.assert_close(grads["numba"][0], g * out.u, **exact)
+    torch.testing.assert_close(grads["numba"][1], g * torch.where(term_weight[..., None], out.u - out.w, 0.0), **exact)
+    torch.testing.assert_close(grads["numba"][2], g * out.w, **exact)
+    torch.testing.assert_close(grads["numba"][3], g * out.v, **exact)
+    tol = dict(rtol=1e-5, atol=2e-6) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
+    for a, b in zip(grads["reference"], grads["numba"]):
+        torch.testing.assert_close(a, b, **tol)
+
+
+@needs_numba
+def test_numba_flagged_rows_are_recomputed(monkeypatch):
+    """Rows the kernel cannot certify are recomputed by the reference: force every row to be flagged."""
+    xs, mask, terminal = make_case(5, 60, 3, torch.float64, ninf=0.2, seed=11)
+    ref = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
+    monkeypatch.setattr(numba_mod, "_FLOOR", 2.0)  # every non-zero message entry is below it
+    *_, bad = numba_mod.numba_forward_backward(*_zeroed(xs, mask), mask, terminal)
+    assert bad.all()
+    out = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
+    assert_close_outputs(ref, out, torch.float64)
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_numba_extreme_values(dtype):
+    """Log-probabilities down to about -2000 with -inf entries: the kernel flags what float64 cannot hold and the
+    answer is the reference's (float64), or at least as close as the reference to the float64 answer (float32)."""
+    B, T, K = 4, 300, 3
+    xs, mask, terminal = make_case(B, T, K, dtype, ninf=0.3, seed=5)
+    g = torch.Generator().manual_seed(1)
+    log_pi = torch.where(torch.rand(B, T, K, generator=g) < 0.5, xs[0] * 400.0, xs[0])
+    xs = (torch.where(torch.isnan(log_pi), 0.0, log_pi),) + xs[1:]
+    ref = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
+    out = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
+    if dtype == torch.float64:
+        assert_close_outputs(ref, out, dtype)
+        return
+    truth = forward_backward(*(x.double() for x in xs), mask=mask, terminal=terminal, backend="reference")
+    for name in ("u", "v", "w"):
+        err_ref = (getattr(ref, name).double() - getattr(truth, name)).abs().max().item()
+        err_out = (getattr(out, name).double() - getattr(truth, name)).abs().max().item()
+        assert err_out <= max(2 * err_ref, 1e-5), (name, err_out, err_ref)
+
+
+@needs_numba
+def test_numba_zero_likelihood_names_row():
+    xs, mask, terminal = make_case(4, 40, 3, torch.float32, pad=False, seed=2)
+    log_pi = xs[0].clone()
+    log_pi[2, 17] = float("-inf")
+    with pytest.raises(ValueError, match=r"trajectories \[2\] have zero likelihood"):
+        forward_backward(log_pi, *xs[1:], backend="numba")
+
+
+@needs_numba
+def test_numba_stable_100k_steps_float32():
+    """100,000 float32 steps, near-deterministic probabilities and -inf entries: the kernel itself (no fallback)
+    stays finite and normalised, and agrees with the reference on a prefix."""
+    B, T, K = 2, 100_000, 4
+    g = torch.Generator().manual_seed(0)
+    log_pi = (30.0 * torch.randn(B, T, K, generator=g)).log_softmax(-1)
+    kill = torch.rand(B, T, K, generator=g) < 0.25
+    kill[..., 0] &= ~kill[..., 1:].all(-1)
+    log_pi = log_pi.masked_fill(kill, float("-inf"))
+    tl = 20.0 * torch.randn(B, T, K, generator=g) - 5.0
+    log_term, log_cont = torch.nn.functional.logsigmoid(tl), torch.nn.functional.logsigmoid(-tl)
+    log_eta = (20.0 * torch.randn(B, T, K, generator=g)).log_softmax(-1)
+    mask = torch.ones(B, T, dtype=torch.bool)
+    mask[1, 77_777:] = False
+    xs = (log_pi, log_term, log_cont, log_eta)
+    ll, u, v, w, bad = numba_mod.numba_forward_backward(*_zeroed(xs, mask), mask, torch.tensor([True, False]))
+    assert not bad.any(), "the kernel itself must handle this case (no fallback)"
+    assert torch.isfinite(ll).all()
+    for x in (u, v, w):
+        assert torch.isfinite(x).all()
+    assert ((u.sum(-1)[mask] - 1).abs().max() < 1e-4).item()
+    assert (u.sum(-1)[~mask] == 0).all()
+    n = 3000
+    ref = forward_backward(*(x[:, :n] for x in xs), terminal=True, backend="reference")
+    out = forward_backward(*(x[:, :n] for x in xs), terminal=True, backend="numba")
+    assert_close_outputs(ref, out, torch.float32)
+
+
+@needs_numba
+def test_numba_thread_count_does_not_change_results():
+    xs, mask, terminal = make_case(9, 50, 4, torch.float32, ninf=0.1, seed=4)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
+        torch.set_num_threads(3)
+        three = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
+    finally:
+        torch.set_num_threads(threads)
+    for name in ("log_likelihood", "u", "v", "w"):
+        assert torch.equal(getattr(one, name), getattr(three, name)), name
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 7, 20])
+def test_numba_row_split_covers_every_row_once(parts):
+    import numpy as np
+
+    lengths = np.array([5, 1, 100, 3, 3, 50, 7])
+    ranges = numba_mod._split_rows(lengths, parts)
+    assert ranges[0][0] == 0 and ranges[-1][1] == len(lengths)
+    assert all(a < b for a, b in ranges) and all(r[1] == s[0] for r, s in zip(ranges, ranges[1:]))
+    assert len(ranges) <= min(parts, len(lengths))
+
+
+def test_auto_without_numba_falls_back(monkeypatch):
+    """Without Numba installed, "auto" takes the PyTorch paths and an explicit "numba" says what to install."""
+    monkeypatch.setattr(fb_mod, "numba_available", lambda: False)
+    xs, mask, terminal = make_case(3, 20, 3, pad=False)
+    assert resolve_backend("auto", xs[0]) == "chunked"
+    assert resolve_backend("auto", xs[0][:, :4]) == "reference"
+    with pytest.raises(ValueError, match="numba.*pip install"):
+        forward_backward(*xs, backend="numba")
+    ref = forward_backward(*xs, backend="reference")
+    assert_close_outputs(ref, forward_backward(*xs), torch.float32)
+
+
+@needs_numba
+def test_numba_backend_argument_errors():
+    xs, _, _ = make_case(2, 6, 3, pad=False)
+    half = tuple(x.half() for x in xs)
+    with pytest.raises(ValueError, match="float32 and float64"):
+        forward_backward(*half, backend="numba")
+    assert resolve_backend("auto", half[0]) != "numba"
+    if HAS_CUDA:
+        with pytest.raises(ValueError, match="CPU tensors"):
+            forward_backward(*(x.cuda() for x in xs), backend="numba")
+
+
+@needs_numba
+def test_numba_kernels_compile_where_no_cache_location_exists():
+    """A function Numba cannot cache (no source file, so no cache location) is compiled in memory instead."""
+    from torchrl_options.inference._numba_kernels import _jit
+
+    ns = {}
+    exec(compile("def f(x):\n    return x + 1.0\n", "<generated>", "exec"), ns)
+    assert _jit()(ns["f"])(1.0) == 2.0
 
 
 _INTERPRET_SCRIPT = textwrap.dedent(

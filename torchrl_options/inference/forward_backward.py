@@ -16,6 +16,7 @@ __all__ = [
     "ForwardBackwardOutput",
     "check_forward_backward_inputs",
     "forward_backward",
+    "numba_available",
     "resolve_backend",
     "triton_available",
 ]
@@ -236,7 +237,9 @@ _AUTO_CHUNKED_MAX_K = 24
 # Largest K the Triton kernel handles (K is padded to a power of two held in registers).
 _TRITON_MAX_K = 128
 
-BACKENDS = ("auto", "reference", "chunked", "triton")
+BACKENDS = ("auto", "reference", "chunked", "numba", "triton")
+# Input dtypes the Numba kernel is compiled for.
+_NUMBA_DTYPES = (torch.float32, torch.float64)
 
 
 def _chunked_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
@@ -265,6 +268,22 @@ def _chunked_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
     return ll, u, v, w
 
 
+def _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
+    """The compiled CPU kernel of :mod:`._numba_fb`, with the rows it flags recomputed by the reference (which also
+    names the rows of zero likelihood and raises)."""
+    from torchrl_options.inference._numba_fb import numba_forward_backward
+
+    ll, u, v, w, bad = numba_forward_backward(log_pi, log_term, log_cont, log_eta, mask, terminal)
+    if bad.any():
+        rows = bad.nonzero().flatten()
+        ref = _forward_backward_reference(
+            log_pi[rows], log_term[rows], log_cont[rows], log_eta[rows], mask[rows], terminal[rows], row_ids=rows
+        )
+        for out, r in zip((ll, u, v, w), ref):
+            out[rows] = r
+    return ll, u, v, w
+
+
 def _triton_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
     from torchrl_options.inference._triton_fb import triton_forward_backward
 
@@ -279,8 +298,16 @@ def _triton_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
 _BACKENDS = {
     "reference": _forward_backward_reference,
     "chunked": _chunked_backend,
+    "numba": _numba_backend,
     "triton": _triton_backend,
 }
+
+
+def numba_available() -> bool:
+    """Whether the Numba backend can run: Numba is installed (``pip install torchrl-options[fast]``)."""
+    from torchrl_options.inference._numba_fb import numba_available as _available
+
+    return _available()
 
 
 def triton_available(device: torch.device | str | None = None) -> bool:
@@ -299,14 +326,18 @@ def triton_available(device: torch.device | str | None = None) -> bool:
 def resolve_backend(backend: str, log_pi: Tensor) -> str:
     """The backend that ``forward_backward(..., backend=backend)`` runs for inputs like ``log_pi``.
 
-    ``"auto"``: ``"triton"`` for CUDA tensors when Triton is available and ``K <= 128``; otherwise ``"chunked"``
-    when there are at least 16 steps and at most 24 options; otherwise ``"reference"``. An explicit ``"triton"``
-    without CUDA and Triton raises a ``ValueError``.
+    ``"auto"``: on CUDA, ``"triton"`` when Triton is available and ``K <= 128``; on the CPU, ``"numba"`` when Numba
+    is installed and the dtype is float32 or float64 (fastest at every size measured by
+    ``benchmarks/bench_forward_backward.py``); otherwise ``"chunked"`` when there are at least 16 steps and at most
+    24 options; otherwise ``"reference"``. An explicit ``"triton"`` without CUDA and Triton, or ``"numba"`` without
+    Numba, on a non-CPU tensor or another dtype, raises a ``ValueError``.
 
     Examples:
         >>> import torch
-        >>> resolve_backend("auto", torch.zeros(2, 100, 4)), resolve_backend("auto", torch.zeros(2, 100, 32))
-        ('chunked', 'reference')
+        >>> resolve_backend("reference", torch.zeros(2, 100, 4))
+        'reference'
+        >>> resolve_backend("auto", torch.zeros(2, 100, 4)) == ("numba" if numba_available() else "chunked")
+        True
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")
@@ -319,10 +350,20 @@ def resolve_backend(backend: str, log_pi: Tensor) -> str:
         if K > _TRITON_MAX_K:
             raise ValueError(f"backend='triton' supports K <= {_TRITON_MAX_K} options, got K = {K}.")
         return backend
+    if backend == "numba":
+        if not numba_available():
+            raise ValueError("backend='numba' needs Numba: pip install 'torchrl-options[fast]' (or use 'auto').")
+        if log_pi.device.type != "cpu":
+            raise ValueError(f"backend='numba' runs on CPU tensors, got tensors on {log_pi.device}; use 'auto'.")
+        if log_pi.dtype not in _NUMBA_DTYPES:
+            raise ValueError(f"backend='numba' supports float32 and float64 inputs, got {log_pi.dtype}.")
+        return backend
     if backend != "auto":
         return backend
     if log_pi.device.type == "cuda" and K <= _TRITON_MAX_K and triton_available(log_pi.device):
         return "triton"
+    if log_pi.device.type == "cpu" and log_pi.dtype in _NUMBA_DTYPES and numba_available():
+        return "numba"
     return "chunked" if T >= _AUTO_MIN_STEPS and K <= _AUTO_CHUNKED_MAX_K else "reference"
 
 
@@ -335,17 +376,21 @@ class _ForwardBackward(torch.autograd.Function):
         ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
         ctx.save_for_backward(u, v, w, _term_weight(mask, terminal))
         ctx.mark_non_differentiable(u, v, w)
-        ctx.fused = backend == "triton"
+        ctx.backend = backend
         return ll, u, v, w
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_ll, grad_u, grad_v, grad_w):
         u, v, w, term_weight = ctx.saved_tensors
-        if ctx.fused:
+        if ctx.backend == "triton":
             from torchrl_options.inference._triton_fb import triton_expectation_gradient
 
             return (*triton_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
+        if ctx.backend == "numba":
+            from torchrl_options.inference._numba_fb import numba_expectation_gradient
+
+            return (*numba_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
         g = grad_ll.view(-1, 1, 1)
         grad_term = torch.where(term_weight.unsqueeze(-1), u - w, 0.0)
         return g * u, g * grad_term, g * w, g * v, None, None, None
@@ -404,11 +449,15 @@ def forward_backward(
             parallel, a scan across chunks, then every message recovered in parallel by the reference's own
             log-space step; rows whose chunk boundaries do not check out (possible only with extreme
             near-deterministic probabilities) are recomputed by the reference (about ``3 sqrt(T)`` sequential
-            steps of O(K^2) work, computed in float64). ``"triton"``: a fused GPU kernel (CUDA and Triton), the
-            time loop inside the kernel, one program per block of rows. ``"auto"`` (default): ``"triton"`` for
-            CUDA tensors when Triton is available and K <= 128, else ``"chunked"`` when T >= 16 and K <= 24
-            (above that, composing K x K transfer matrices costs more than it saves), else ``"reference"``
-            (see :func:`resolve_backend`).
+            steps of O(K^2) work, computed in float64). ``"numba"``: a compiled CPU kernel (needs Numba, the
+            ``fast`` extra; float32/float64): the time loop in machine code, scaled float64 probability space,
+            one trajectory per thread (``torch.get_num_threads()`` threads); rows it cannot certify (extreme
+            near-deterministic inputs) are recomputed by the reference. The first call of a session loads or
+            compiles the kernel (seconds; see ``docs/performance.md``). ``"triton"``: a fused GPU kernel (CUDA
+            and Triton), the time loop inside the kernel, one program per block of rows. ``"auto"`` (default):
+            ``"triton"`` for CUDA tensors when Triton is available and K <= 128; on the CPU ``"numba"`` when
+            Numba is installed, else ``"chunked"`` when T >= 16 and K <= 24 (above that, composing K x K transfer
+            matrices costs more than it saves), else ``"reference"`` (see :func:`resolve_backend`).
 
     Returns:
         ForwardBackwardOutput: ``log_likelihood`` ``[B]`` and the detached marginals ``u``, ``v``, ``w``
