@@ -477,3 +477,54 @@ def test_faithful_settings_reach_the_env_and_the_agent():
     bad = OmegaConf.to_container(_config(["preset=smoke", "conditions=[A,H1s]", "atari.discount_per=decision"]))
     with pytest.raises(ValueError, match=r"\['H1s'\] .* need atari.discount_per=step"):
         check_atari_recipe_settings(bad)
+
+
+def _sweep_script_overrides(out_dir) -> list[str]:
+    """The Hydra overrides of recipes/ray/run_faithful_sweep.sh, with its OUT_DIR."""
+    import shlex
+
+    text = (ROOT + "/recipes/ray/run_faithful_sweep.sh")
+    words = shlex.split(" ".join(line.rstrip("\\") for line in open(text).read().splitlines() if not line.startswith("#")))
+    start = words.index("recipes/atari_ram.py") + 1
+    return [w.replace("$OUT_DIR", str(out_dir)) for w in words[start:] if w != "$@"]
+
+
+def test_ray_cluster_config_and_the_sweep_command():
+    import yaml
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments.validation import check_atari_recipe_settings
+
+    with open(os.path.join(ROOT, "recipes", "ray", "atari_faithful.yaml")) as f:
+        cluster = yaml.safe_load(f)
+    assert cluster["head_node_type"] in cluster["available_node_types"] and cluster["provider"]["type"] == "aws"
+    assert any("[atari,recipes,ray]" in c for c in cluster["setup_commands"])
+    assert cluster["max_workers"] >= max(t.get("max_workers", 0) for t in cluster["available_node_types"].values())
+    overrides = _sweep_script_overrides("/mnt/ddo/atari_faithful")
+    cfg = _config(overrides)
+    check_atari_recipe_settings(OmegaConf.to_container(cfg, resolve=True))
+    assert cfg.preset_name == "faithful" and cfg.sweep.backend == "ray" and cfg.sweep.ray_address == "auto"
+    assert cfg.atari.device == "cpu" and cfg.out_dir == "/mnt/ddo/atari_faithful"
+    assert len(_recipe().sweep_cells(cfg)) == 5 * 50 * 2
+
+
+@pytest.mark.slow
+def test_faithful_sweep_command_on_local_ray_at_tiny_scale(tmp_path):
+    """The sweep script's own settings, at a tiny budget, on a local Ray cluster; run again, it resumes (nothing
+    left to run) and rewrites the summary with the phase-2 table."""
+    ray = pytest.importorskip("ray")
+    tiny = ["game=Pooyan", "seeds=1", "sweep.ray_address=null", "sweep.num_workers=2", "atari.max_episode_steps=20",
+            "atari.phase1_episodes=2", "atari.phase3_episodes=2", "atari.num_demonstrations=2",
+            "atari.demo_max_steps=20", "atari.demo_random_episodes=1", "atari.ddo_iterations=2", "atari.num_envs=2",
+            "atari.frames_per_batch=20", "atari.updates_per_batch=1", "atari.learning_starts=10",
+            "atari.hidden_sizes=[8,8,8]", "atari.options_num_cells=[8]", "atari.eval_every=2", "atari.eval_episodes=2",
+            "atari.option_frames=false", "atari.checkpoint_every=1"]  # fmt: skip
+    cfg = _config(_sweep_script_overrides(tmp_path) + tiny)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        _check_ray_outputs(tmp_path, _recipe().run(cfg))
+        assert _recipe().run(cfg) == []
+    finally:
+        ray.shutdown()
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| Pooyan | one_hot | 1 |" in summary and "env_semantics=paper" in summary and "discount per decision" in summary
