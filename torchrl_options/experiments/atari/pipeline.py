@@ -154,7 +154,7 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     return options, metadata
 
 
-def demonstrations_log_likelihood(options, demos, *, chunk: int = 16) -> float:
+def demonstrations_log_likelihood(options, demos, *, chunk: int = 8) -> float:
     """The log-likelihood per step of trajectories under ``options`` (uniform meta-control, DDO's model: the
     options' actions and terminations marginalised over), every trajectory whole, ``chunk`` at a time.
 
