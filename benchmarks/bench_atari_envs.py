@@ -150,7 +150,7 @@ def protocol_core_hours(rates: dict[str, float], episode_steps: float) -> dict[s
     Examples:
         >>> h = protocol_core_hours({"A": 1000.0, "H1": 500.0, "rollout": 2000.0}, 100.0)
         >>> round(h["train"], 3), round(h["rollouts"], 3)
-        (0.361, 0.126)
+        (0.361, 0.064)
     """
     train = (5000 * episode_steps / rates["A"] + 4000 * episode_steps / rates["H1"]) / 3600
     rollouts = (100 + 50 * (10 + 40 + 40)) * episode_steps / rates["rollout"] / 3600
