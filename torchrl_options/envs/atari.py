@@ -15,8 +15,11 @@ Two pieces live here:
   an ``nn.EmbeddingBag`` and the one-hot vector is never built.
 
 Why the env does not one-hot encode: a 32768-float observation would make every replay-buffer entry 128 KiB.
-``bytes / 255`` is exact (``round(x * 255)`` gives the bytes back), small, and is what the options networks
-(:class:`~torchrl_options.OptionsMLP`) read directly; the Q-network chooses its input layer (bytes or one-hot).
+``bytes / 255`` is exact (``round(x * 255)`` gives the bytes back) and small; each network chooses its input layer:
+one-hot (the Q-network's :class:`RAMOneHotEncoder`, the options' :class:`~torchrl_options.modules.OneHotByteOptions`
+with ``value_scale=1 / 255``) or the bytes as numbers.
+
+:data:`PAPER_ENV_SETTINGS` are the authors' environment semantics (their gym ``<Game>-ram-v0``).
 """
 from __future__ import annotations
 
