@@ -49,6 +49,7 @@ from torchrl_options.experiments.atari import (
     atari_comparison,
     atari_summary_markdown,
     atari_summary_pairs,
+    demonstration_fit_markdown,
     greedy_evaluation_markdown,
     option_usage_markdown,
     run_atari_cell,
@@ -121,14 +122,29 @@ def write_outputs(results: ResultsLog, out_dir: str, cfg: DictConfig, config: At
         text += atari_summary_markdown(comparisons, final_window=cfg.final_window,
                                        header=f"## {condition} vs {baseline}") + "\n"
     text += greedy_evaluation_markdown(out_dir, pairs, phase1_episodes=config.phase1_episodes)
+    fit = demonstration_fit_markdown(out_dir)
+    if fit:
+        text += ("\n## Phase 2: the options' fit to their demonstrator, and the demonstrations' quality gate\n\n"
+                 "Log-likelihood per step of each seed's greedy demonstrations under its discovered options (uniform "
+                 "meta-control, options marginalised), next to the epsilon-greedy demonstrator's own log-probability "
+                 "of its (greedy) actions. A demonstrator is degenerate when its demonstrations' mean return is no "
+                 "better than a random policy's on the same game.\n\n" + fit)
     usage = option_usage_markdown(out_dir)
     if usage:
         text += "\n## Option usage in phase 3 (from the replay buffer)\n\n" + usage + "\n"
+    env = config.env_kwargs()
+    skip = env["frame_skip"]
+    evaluation = f"every {config.eval_every} episodes, {config.eval_episodes} rollouts" if config.eval_every else "off"
+    skip_text = f"{skip[0]}-{skip[1] - 1} (uniform)" if isinstance(skip, (tuple, list)) else str(skip)
     text += (
         f"\nBudget per cell: {config.phase1_episodes} phase-1 episodes (shared), {config.num_demonstrations} "
-        f"greedy trajectories, DDO {config.ddo_iterations} iterations, {config.phase3_episodes} phase-3 episodes; "
-        f"episodes of at most {config.max_episode_steps} steps of {config.frame_skip} frames; Q-network input "
-        f"`{config.ram_encoding}`, hidden {list(config.hidden_sizes)} tanh.\n\n"
+        f"greedy trajectories, DDO {config.ddo_iterations} iterations, {config.phase3_episodes} phase-3 episodes. "
+        f"Env (`env_semantics={config.env_semantics}`): episodes of at most {env['max_episode_steps']} steps of "
+        f"{skip_text} frames, sticky actions {env['repeat_action_probability']}, rewards "
+        f"{'clipped to [-1, 1]' if env['clip_rewards'] else 'raw'}, up to {env['noop_max']} no-op starts. Q-network "
+        f"input `{config.ram_encoding}`, hidden {list(config.hidden_sizes)} tanh; options `{config.option_encoding}`, "
+        f"hidden {list(config.options_num_cells)} tanh; discount per {config.discount_per}, gamma {config.gamma}; "
+        f"greedy evaluation {evaluation}.\n\n"
         "## Whole runs (phase 1 + phase 3), per condition\n\n"
     )
     text += summary_markdown(summarize(results, final_window=cfg.final_window, smooth_window=cfg.smooth_window),

@@ -237,3 +237,33 @@ def test_vector_env_episodic_life_per_game():
     games = env.base_env._env.envs
     assert any(not g.game_over and 0 < g.unwrapped.ale.lives() < 3 for g in games)
     env.close()
+
+
+@needs_ale
+def test_paper_env_settings_random_frame_skip_sticky_raw_rewards():
+    from torchrl_options.envs.atari import PAPER_ENV_SETTINGS
+
+    assert PAPER_ENV_SETTINGS == {"frame_skip": (2, 5), "repeat_action_probability": 0.25, "noop_max": 0,
+                                  "episodic_life": False, "clip_rewards": False, "max_episode_steps": 10_000}
+    env = make_atari_ram_env("Atlantis", **{**PAPER_ENV_SETTINGS, "max_episode_steps": 300}, seed=0)
+    ale = env.base_env._env.unwrapped.ale
+    assert ale.getFloat("repeat_action_probability") == 0.25
+    env.reset()
+    skips, rewards = [], []
+    td = env.reset()
+    for _ in range(300):
+        before = ale.getEpisodeFrameNumber()
+        td = env.rand_step(td)
+        skips.append(ale.getEpisodeFrameNumber() - before)
+        rewards.append(float(td["next", "reward"]))
+        td = td["next"] if not td["next", "done"] else env.reset()
+    assert set(skips) == {2, 3, 4}  # drawn uniformly in 2-4 at every step
+    assert max(rewards) > 1  # raw: Atlantis scores hundreds per hit
+    env.close()
+
+
+@needs_ale
+@pytest.mark.parametrize("bad", [0, (3, 3), (0, 2), (2, 5, 7), 2.5, True])
+def test_bad_frame_skip_refused(bad):
+    with pytest.raises(ValueError, match="frame_skip must be an int >= 1 or a pair"):
+        make_atari_ram_env("Pooyan", frame_skip=bad)

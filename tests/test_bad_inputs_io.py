@@ -283,7 +283,7 @@ CONFIGS = [
     ("OptionsDQN config of another type", lambda: _dqn_with(config={"mode": "both"}), TypeError, "config must be an OptionsDQNConfig"),
     ("atari phase1_episodes -5", lambda: AtariConfig(phase1_episodes=-5), ValueError, "phase1_episodes must be an int >= 1"),
     ("atari gamma 2", lambda: AtariConfig(gamma=2.0), ValueError, "gamma must be a number in [0.0, 1.0]"),
-    ("atari ram_encoding", lambda: AtariConfig(ram_encoding="pixels"), ValueError, "ram_encoding must be 'one_hot' or 'bytes'"),
+    ("atari ram_encoding", lambda: AtariConfig(ram_encoding="pixels"), ValueError, "ram_encoding must be one of ('one_hot', 'bytes'), got 'pixels'"),
     ("atari hidden_sizes empty", lambda: AtariConfig(hidden_sizes=()), ValueError, "hidden_sizes must be a non-empty list"),
     ("atari lr 0", lambda: AtariConfig(lr=0), ValueError, "lr must be a number > 0"),
     ("atari num_options 0", lambda: AtariConfig(num_options=0), ValueError, "num_options must be an int >= 1"),

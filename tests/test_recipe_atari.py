@@ -401,3 +401,130 @@ def test_agent_config_takes_the_shared_settings_by_name():
         assert dqn.mode == "actions" and dqn.num_envs == 1
     finally:
         _close(agent)
+
+
+def test_phase2_one_hot_options_their_fit_and_the_quality_gate(tmp_path, caplog):
+    import logging
+    import math
+
+    from torchrl_options import OptionsMLP
+    from torchrl_options.experiments.atari import demonstration_fit_markdown
+    from torchrl_options.experiments.atari.pipeline import _phase2, _quality_gate
+    from torchrl_options.modules import OneHotByteOptions
+
+    small = dict(max_episode_steps=40, noop_max=0, hidden_sizes=(8, 8, 8), num_demonstrations=3, demo_max_steps=40,
+                 options_num_cells=(8,), ddo_iterations=3, ddo_batch_size=None, demo_random_episodes=2)  # fmt: skip
+    config = AtariConfig(**small)
+    assert config.option_encoding == "one_hot"  # the paper's, the default
+    agent = _make_agent("Pooyan", config, 0, "actions")
+    options, meta = _phase2("Pooyan", config, 0, str(tmp_path), agent)
+    assert isinstance(options, OneHotByteOptions) and options.value_scale == 1 / 255
+    # every demonstration step is the greedy action: the eps-greedy demonstrator's probability 1 - eps + eps / A
+    assert meta["demonstrator_log_likelihood_per_step"] == pytest.approx(math.log(1 - 0.05 + 0.05 / 6))
+    assert -math.log(6) - 0.5 < meta["options_log_likelihood_per_step"] < 0
+    assert len(meta["random_returns"]) == 2
+    demo_mean, random_mean = np.mean(meta["demo_returns"]), np.mean(meta["random_returns"])
+    assert meta["degenerate_demonstrator"] == bool(demo_mean <= random_mean)
+    assert json.loads((tmp_path / "phase2.json").read_text())["options_log_likelihood_per_step"] == pytest.approx(
+        meta["options_log_likelihood_per_step"])
+    # the phase-2 table reads it (the recipe's summary.md), laid out as <out>/<game>/seed<s>/
+    (tmp_path / "out" / "Pooyan" / "seed0").mkdir(parents=True)
+    (tmp_path / "out" / "Pooyan" / "seed0" / "phase2.json").write_text((tmp_path / "phase2.json").read_text())
+    assert "| Pooyan | one_hot | 1 |" in demonstration_fit_markdown(str(tmp_path / "out"))
+    # the gate: logged and recorded when the demonstrations are no better than a random policy, runs on regardless
+    with caplog.at_level(logging.WARNING):
+        assert _quality_gate("Pooyan", config, 0, [-1e9])["degenerate_demonstrator"] is True
+    assert "degenerate demonstrator" in caplog.text
+    assert _quality_gate("Pooyan", config, 0, [1e9])["degenerate_demonstrator"] is False
+    assert _quality_gate("Pooyan", AtariConfig(**{**small, "demo_random_episodes": 0}), 0, [0.0]) == {
+        "random_returns": [], "degenerate_demonstrator": None}
+    # bytes / 255 options, the project's former networks
+    (tmp_path / "bytes").mkdir()
+    options, meta = _phase2("Pooyan", AtariConfig(**small, option_encoding="bytes"), 0, str(tmp_path / "bytes"), agent)
+    assert isinstance(options, OptionsMLP) and meta["option_encoding"] == "bytes"
+    _close(agent)
+    with pytest.raises(ValueError, match="option_encoding must be one of"):
+        AtariConfig(option_encoding="onehot16")
+
+
+def test_faithful_settings_reach_the_env_and_the_agent():
+    from torchrl_options.envs.atari import PAPER_ENV_SETTINGS
+    from torchrl_options.experiments.validation import check_atari_recipe_settings
+    from omegaconf import OmegaConf
+
+    cfg = _config(["preset=faithful"])
+    faithful = AtariConfig.from_dict(dict(cfg.atari))
+    assert faithful.env_kwargs() == PAPER_ENV_SETTINGS and faithful.discount_per == "decision"
+    assert (faithful.option_encoding, faithful.ram_encoding, faithful.num_demonstrations) == ("one_hot", "one_hot", 100)
+    assert (faithful.eval_episodes, faithful.phase1_episodes, faithful.phase3_episodes, cfg.seeds) == (50, 1000, 4000, 50)
+    config = AtariConfig(env_semantics="paper", max_episode_steps=20, discount_per="decision", hidden_sizes=(8, 8, 8))
+    agent = _make_agent("Atlantis", config, 0, "actions")
+    try:
+        assert agent.config.discount_per == "decision" and agent.smdp.per_decision
+        assert agent.env.rollout(100).shape[-1] == 20  # the cap given beats the paper's 10,000
+    finally:
+        _close(agent)
+    from torchrl.envs import RewardClipping
+
+    from torchrl_options.experiments.atari.utils import _env_factory
+
+    env = _env_factory("Atlantis", config, 0)()
+    assert not any(isinstance(t, RewardClipping) for t in env.transform)  # raw rewards
+    ale = env.base_env._env.unwrapped.ale
+    assert ale.getFloat("repeat_action_probability") == 0.25 and env.base_env._env.unwrapped._frameskip == (2, 5)
+    env.close()
+    # option suffixes discount per primitive step: refused with the per-decision discount, before any work
+    bad = OmegaConf.to_container(_config(["preset=smoke", "conditions=[A,H1s]", "atari.discount_per=decision"]))
+    with pytest.raises(ValueError, match=r"\['H1s'\] .* need atari.discount_per=step"):
+        check_atari_recipe_settings(bad)
+
+
+def _sweep_script_overrides(out_dir) -> list[str]:
+    """The Hydra overrides of recipes/ray/run_faithful_sweep.sh, with its OUT_DIR."""
+    import shlex
+
+    text = (ROOT + "/recipes/ray/run_faithful_sweep.sh")
+    words = shlex.split(" ".join(line.rstrip("\\") for line in open(text).read().splitlines() if not line.startswith("#")))
+    start = words.index("recipes/atari_ram.py") + 1
+    return [w.replace("$OUT_DIR", str(out_dir)) for w in words[start:] if w != "$@"]
+
+
+def test_ray_cluster_config_and_the_sweep_command():
+    import yaml
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments.validation import check_atari_recipe_settings
+
+    with open(os.path.join(ROOT, "recipes", "ray", "atari_faithful.yaml")) as f:
+        cluster = yaml.safe_load(f)
+    assert cluster["head_node_type"] in cluster["available_node_types"] and cluster["provider"]["type"] == "aws"
+    assert any("[atari,recipes,ray]" in c for c in cluster["setup_commands"])
+    assert cluster["max_workers"] >= max(t.get("max_workers", 0) for t in cluster["available_node_types"].values())
+    overrides = _sweep_script_overrides("/mnt/ddo/atari_faithful")
+    cfg = _config(overrides)
+    check_atari_recipe_settings(OmegaConf.to_container(cfg, resolve=True))
+    assert cfg.preset_name == "faithful" and cfg.sweep.backend == "ray" and cfg.sweep.ray_address == "auto"
+    assert cfg.atari.device == "cpu" and cfg.out_dir == "/mnt/ddo/atari_faithful"
+    assert len(_recipe().sweep_cells(cfg)) == 5 * 50 * 2
+
+
+@pytest.mark.slow
+def test_faithful_sweep_command_on_local_ray_at_tiny_scale(tmp_path):
+    """The sweep script's own settings, at a tiny budget, on a local Ray cluster; run again, it resumes (nothing
+    left to run) and rewrites the summary with the phase-2 table."""
+    ray = pytest.importorskip("ray")
+    tiny = ["game=Pooyan", "seeds=1", "sweep.ray_address=null", "sweep.num_workers=2", "atari.max_episode_steps=20",
+            "atari.phase1_episodes=2", "atari.phase3_episodes=2", "atari.num_demonstrations=2",
+            "atari.demo_max_steps=20", "atari.demo_random_episodes=1", "atari.ddo_iterations=2", "atari.num_envs=2",
+            "atari.frames_per_batch=20", "atari.updates_per_batch=1", "atari.learning_starts=10",
+            "atari.hidden_sizes=[8,8,8]", "atari.options_num_cells=[8]", "atari.eval_every=2", "atari.eval_episodes=2",
+            "atari.option_frames=false", "atari.checkpoint_every=1"]  # fmt: skip
+    cfg = _config(_sweep_script_overrides(tmp_path) + tiny)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        _check_ray_outputs(tmp_path, _recipe().run(cfg))
+        assert _recipe().run(cfg) == []
+    finally:
+        ray.shutdown()
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| Pooyan | one_hot | 1 |" in summary and "env_semantics=paper" in summary and "discount per decision" in summary

@@ -238,6 +238,33 @@ def test_dqn_loss_bootstraps_with_gamma_k():
     torch.testing.assert_close(loss(td)["loss"][1], torch.tensor((2.0 - (0.5 + gamma * 5.0)) ** 2))
 
 
+@pytest.mark.parametrize("discount_per", ["step", "decision"])
+def test_dqn_target_of_a_three_step_option_by_hand(discount_per):
+    """Step-level data through the SMDP transitions into DQNLoss: a 3-step option with rewards 1, 2, 4, then a
+    1-step action, Q'(s, .) = [1, 2, 5]. Per step (SMDP): y = 1 + g 2 + g^2 4 + g^3 5; per decision (the authors'
+    HDQN): y = (1 + 2 + 4) + g 5."""
+    g = 0.5
+    data = steps([True, False, False, True, True], [False] * 5, [1.0, 2.0, 4.0, 8.0, 0.0])
+    out = smdp_transitions(data, g, discount_per=discount_per)
+    net = torch.nn.Linear(1, 3)
+    with torch.no_grad():
+        net.weight.zero_()
+        net.bias.copy_(torch.tensor([1.0, 2.0, 5.0]))
+    actor = QValueActor(net, in_keys=["observation"], spec=Categorical(3))
+    loss = DQNLoss(actor, action_space=Categorical(3), delay_value=True, reduction="none")
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=g)
+    td = out.select("observation", "action", "steps_to_next_obs", ("next", "reward"), ("next", "done"),
+                    ("next", "terminated"), ("next", "observation"))  # fmt: skip
+    td["observation"] = td["observation"].unsqueeze(-1)
+    td["next", "observation"] = td["next", "observation"].unsqueeze(-1)
+    td["action"] = torch.tensor([0, 2])  # Q(s, a) = 1 and 5
+    if discount_per == "step":
+        target = torch.tensor([1 + g * 2 + g**2 * 4 + g**3 * 5, 8 + g * 5])
+    else:
+        target = torch.tensor([(1 + 2 + 4) + g * 5, 8 + g * 5])
+    torch.testing.assert_close(loss(td)["loss"], (torch.tensor([1.0, 5.0]) - target) ** 2)
+
+
 # ---------------------------------------------------------------------------------- bad input
 NAN = float("nan")
 

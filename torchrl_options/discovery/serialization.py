@@ -8,13 +8,13 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_options.checkpoints import load_file
-from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
+from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OneHotByteOptions, OptionsMLP, UniformMetaControl
 
 __all__ = ["save_options", "load_options", "module_to_dict", "module_from_dict"]
 
 _FORMAT = "torchrl_options/options-v1"
 _CLASSES: dict[str, type] = {
-    cls.__name__: cls for cls in (OptionsMLP, GaussianOptionsMLP, MetaControlMLP, UniformMetaControl)
+    cls.__name__: cls for cls in (OptionsMLP, GaussianOptionsMLP, OneHotByteOptions, MetaControlMLP, UniformMetaControl)
 }
 
 
@@ -78,6 +78,8 @@ def module_from_dict(entry: dict, source: str = "the file") -> TensorDictModuleB
 def _build(cls: type, config: dict) -> TensorDictModuleBase:
     if cls is OptionsMLP:
         return cls(config.pop("in_features"), config.pop("num_actions"), config.pop("num_options"), **config)
+    if cls is OneHotByteOptions:
+        return cls(config.pop("num_bytes"), config.pop("num_actions"), config.pop("num_options"), **config)
     if cls is GaussianOptionsMLP:
         return cls(config.pop("in_features"), config.pop("action_dim"), config.pop("num_options"), **config)
     if cls is MetaControlMLP:
@@ -103,8 +105,8 @@ def save_options(
     The file holds plain data (class names, configurations, tensors) and loads with ``weights_only=True``.
 
     Args:
-        options (TensorDictModuleBase): an :class:`~torchrl_options.OptionsMLP` or
-            :class:`~torchrl_options.GaussianOptionsMLP`.
+        options (TensorDictModuleBase): an :class:`~torchrl_options.OptionsMLP`,
+            :class:`~torchrl_options.GaussianOptionsMLP` or :class:`~torchrl_options.modules.OneHotByteOptions`.
         path (str or PathLike): the file to write.
 
     Keyword Args:

@@ -15,8 +15,11 @@ Two pieces live here:
   an ``nn.EmbeddingBag`` and the one-hot vector is never built.
 
 Why the env does not one-hot encode: a 32768-float observation would make every replay-buffer entry 128 KiB.
-``bytes / 255`` is exact (``round(x * 255)`` gives the bytes back), small, and is what the options networks
-(:class:`~torchrl_options.OptionsMLP`) read directly; the Q-network chooses its input layer (bytes or one-hot).
+``bytes / 255`` is exact (``round(x * 255)`` gives the bytes back) and small; each network chooses its input layer:
+one-hot (the Q-network's :class:`RAMOneHotEncoder`, the options' :class:`~torchrl_options.modules.OneHotByteOptions`
+with ``value_scale=1 / 255``) or the bytes as numbers.
+
+:data:`PAPER_ENV_SETTINGS` are the authors' environment semantics (their gym ``<Game>-ram-v0``).
 """
 from __future__ import annotations
 
@@ -50,6 +53,7 @@ __all__ = [
     "atari_available",
     "EpisodicLife",
     "NoopStart",
+    "PAPER_ENV_SETTINGS",
 ]
 
 #: The paper's five RAM games.
@@ -59,6 +63,19 @@ ATARI_GAMES = ("Atlantis", "Pooyan", "Gopher", "SpaceInvaders", "Seaquest")
 PAPER_NUM_OPTIONS = {"Atlantis": 4, "Pooyan": 7, "Gopher": 3, "SpaceInvaders": 3, "Seaquest": 5}
 
 RAM_SIZE = 128
+
+#: The authors' environment (their pinned gym's ``<Game>-ram-v0``; ale-py registers the same ALE settings as
+#: ``<Game>-v0``): sticky actions with probability 0.25, a frame skip drawn uniformly in 2-4 at every step (ALE's
+#: ``frameskip=(2, 5)``), raw rewards, no random no-op starts, a whole game per episode, episodes cut at 10,000 steps
+#: (gym's ``TimeLimit`` of the v0 ids). Keyword arguments of :func:`make_atari_ram_env`.
+PAPER_ENV_SETTINGS = {
+    "frame_skip": (2, 5),
+    "repeat_action_probability": 0.25,
+    "noop_max": 0,
+    "episodic_life": False,
+    "clip_rewards": False,
+    "max_episode_steps": 10_000,
+}
 
 
 def atari_available() -> bool:
@@ -164,7 +181,7 @@ def _env_id(game: str) -> str:
 def make_atari_ram_env(
     game: str = "Seaquest",
     *,
-    frame_skip: int = 4,
+    frame_skip: int | tuple[int, int] = 4,
     repeat_action_probability: float = 0.25,
     noop_max: int = 30,
     episodic_life: bool = False,
@@ -189,9 +206,13 @@ def make_atari_ram_env(
         game (str): ``"Seaquest"`` (``ALE/Seaquest-v5``), ``"SpaceInvaders"``, ... or a full ``"ALE/..."`` id.
 
     Keyword Args:
-        frame_skip (int): ALE's own frame skip (``frameskip``; ALE v5 default 4). One env step is this many frames.
-        repeat_action_probability (float): ALE sticky actions (v5 default 0.25; 0 is the deterministic ALE of the
-            paper's time).
+        frame_skip (int or (int, int)): ALE's own frame skip (``frameskip``; ALE v5 default 4). One env step is this
+            many frames; a pair ``(low, high)`` draws it uniformly in ``low .. high - 1`` at every step (``(2, 5)``:
+            the authors' gym ``-ram-v0``, see :data:`PAPER_ENV_SETTINGS`).
+        repeat_action_probability (float): ALE sticky actions: with this probability the emulator repeats the
+            previous action instead of the chosen one (v5 default 0.25). The authors' gym ``-ram-v0`` envs had 0.25
+            too (:data:`PAPER_ENV_SETTINGS`); 0 makes the emulator deterministic given the actions, which no-op
+            starts then randomise.
         noop_max (int): up to this many random no-op steps after each reset (0 disables).
         episodic_life (bool): end the episode at the loss of a life (see :class:`EpisodicLife`).
         clip_rewards (bool): clip rewards to [-1, 1].
@@ -218,6 +239,14 @@ def make_atari_ram_env(
     """
     if not atari_available():
         raise ImportError("Atari envs need ale-py: pip install 'torchrl-options[atari]'.")
+    if isinstance(frame_skip, list):
+        frame_skip = tuple(frame_skip)
+    if isinstance(frame_skip, tuple):
+        ok = len(frame_skip) == 2 and all(isinstance(f, int) and not isinstance(f, bool) for f in frame_skip)
+        if not ok or not 1 <= frame_skip[0] < frame_skip[1]:
+            raise ValueError(f"frame_skip must be an int >= 1 or a pair (low, high) with 1 <= low < high, got {frame_skip!r}.")
+    elif isinstance(frame_skip, bool) or not isinstance(frame_skip, int) or frame_skip < 1:
+        raise ValueError(f"frame_skip must be an int >= 1 or a pair (low, high) with 1 <= low < high, got {frame_skip!r}.")
     if ram_encoding not in ("bytes", "uint8"):
         raise ValueError(f"ram_encoding must be 'bytes' or 'uint8', got {ram_encoding!r}.")
     if not isinstance(num_envs, int) or num_envs < 1:

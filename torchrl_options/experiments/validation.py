@@ -199,11 +199,17 @@ def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> None:
     _sweep(dict(cfg.get("sweep") or {}), "sweep.")
     _int(dict(cfg.get("sweep") or {}), "threads_per_worker", "sweep.threads_per_worker", 1, allow_none=True)
     try:
-        AtariConfig.from_dict(dict(cfg.get("atari") or {}))
+        config = AtariConfig.from_dict(dict(cfg.get("atari") or {}))
     except TypeError as err:
         raise SettingError(f"atari.{err}") from None
     except ValueError as err:
         raise SettingError(f"atari.{err}" if not str(err).startswith("unknown") else str(err)) from None
+    suffixes = [c for c in conditions if c.startswith("H1") and "s" in c[2:]]
+    if suffixes and config.discount_per != "step":
+        raise SettingError(
+            f"conditions {suffixes} learn option values from option suffixes, discounted per primitive step: they "
+            f"need atari.discount_per=step, got {config.discount_per!r}."
+        )
 
 
 def check_segment_settings(cfg: Mapping[str, Any]) -> None:

@@ -1,5 +1,6 @@
 """Options and meta-control policies as TensorDict modules."""
+from torchrl_options.modules.byte_options import OneHotByteOptions
 from torchrl_options.modules.meta_control import MetaControlMLP, UniformMetaControl
 from torchrl_options.modules.options import GaussianOptionsMLP, OptionsMLP
 
-__all__ = ["GaussianOptionsMLP", "MetaControlMLP", "OptionsMLP", "UniformMetaControl"]
+__all__ = ["GaussianOptionsMLP", "MetaControlMLP", "OneHotByteOptions", "OptionsMLP", "UniformMetaControl"]

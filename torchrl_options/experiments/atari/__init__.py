@@ -45,6 +45,7 @@ from torchrl_options.experiments.atari.summary import (
     atari_summary_markdown,
     atari_summary_pairs,
     AtariComparison,
+    demonstration_fit_markdown,
     greedy_evaluation_markdown,
     option_usage_markdown,
 )
@@ -59,6 +60,7 @@ __all__ = [
     "option_usage",
     "option_usage_markdown",
     "greedy_evaluation_markdown",
+    "demonstration_fit_markdown",
     "atari_summary_pairs",
     "atari_scores",
     "atari_aggregates",

@@ -13,16 +13,28 @@ class AtariConfig:
     """Settings of one Atari RAM cell: the schema of the ``atari`` section of ``recipes/config/atari_ram.yaml``
     (:func:`store_atari_config`).
 
-    Env: ``frame_skip``, ``repeat_action_probability``, ``noop_max``, ``episodic_life``, ``clip_rewards``,
-    ``max_episode_steps`` (see :func:`~torchrl_options.envs.atari.make_atari_ram_env`); ``ram_encoding`` is the
-    Q-network's input layer: ``"one_hot"`` (the paper's 128 x 256) or ``"bytes"``. The options networks read
-    ``bytes / 255``.
+    Env: ``env_semantics="project"`` (default) builds the game from ``frame_skip``, ``repeat_action_probability``,
+    ``noop_max``, ``episodic_life``, ``clip_rewards``, ``max_episode_steps`` (see
+    :func:`~torchrl_options.envs.atari.make_atari_ram_env`); ``env_semantics="paper"`` ignores the first five and
+    reproduces the authors' gym ``<Game>-ram-v0`` (:data:`~torchrl_options.envs.atari.PAPER_ENV_SETTINGS`: sticky
+    actions 0.25, a frame skip drawn uniformly in 2-4 at every step, raw rewards, no no-op starts), with episodes
+    cut at ``max_episode_steps`` steps, ``None`` giving the paper's 10,000 (a smaller cap: a shorter budget). ``ram_encoding`` is the Q-network's input layer: ``"one_hot"`` (the paper's 128 x 256) or
+    ``"bytes"``. ``option_encoding`` the options networks': ``"one_hot"`` (default, the paper's:
+    :class:`~torchrl_options.modules.OneHotByteOptions`, each byte one-hot, ``options_num_cells`` the widths after
+    it) or ``"bytes"`` (an :class:`~torchrl_options.OptionsMLP` on ``bytes / 255``).
 
     Phases: ``phase1_episodes`` (DQN, actions), ``num_demonstrations`` greedy trajectories of at most
     ``demo_max_steps`` steps, DDO with ``num_options`` (``None``: the paper's count for the game) for
     ``ddo_iterations`` iterations of ``ddo_m_steps`` optimizer steps each (1: the paper's Expectation-Gradient;
     more: a generalised EM that fits the demonstrations much more closely for the same E-steps, see
-    :func:`~torchrl_options.discover_options`), then ``phase3_episodes`` for each condition.
+    :func:`~torchrl_options.discover_options`), then ``phase3_episodes`` for each condition. The demonstrations'
+    quality gate: ``demo_random_episodes`` episodes of a uniformly random policy on the same game (0: none); when the
+    greedy demonstrations' mean return is no better than theirs, the demonstrator is recorded as degenerate
+    (``phase2.json`` and ``summary.md``) and a warning is logged; the protocol runs on regardless, as the paper's.
+
+    ``discount_per``: ``"step"`` (default, the SMDP target ``R + gamma^k max Q`` with rewards discounted inside an
+    option) or ``"decision"`` (the authors' HDQN: an option's rewards summed undiscounted, one ``gamma`` per
+    decision); see :class:`~torchrl_options.agents.OptionsDQNConfig`.
 
     DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
     ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
@@ -49,6 +61,7 @@ class AtariConfig:
     """
 
     # env
+    env_semantics: str = "project"
     frame_skip: int = 4
     repeat_action_probability: float = 0.0
     noop_max: int = 30
@@ -56,6 +69,7 @@ class AtariConfig:
     clip_rewards: bool = True
     max_episode_steps: int | None = None
     ram_encoding: str = "one_hot"
+    option_encoding: str = "one_hot"
     # phases
     phase1_episodes: int = 1000
     phase3_episodes: int = 4000
@@ -67,9 +81,11 @@ class AtariConfig:
     ddo_batch_size: int | None = 20
     ddo_lr: float = 1e-3
     ddo_m_steps: int = 1
+    demo_random_episodes: int = 10
     # DQN
     hidden_sizes: tuple[int, ...] = (64, 64, 64)
     gamma: float = 0.85
+    discount_per: str = "step"
     eps_init: float = 0.05
     eps_end: float = 0.05
     eps_annealing_frames: int = 1
@@ -106,6 +122,7 @@ class AtariConfig:
         "updates_per_batch": (0, False), "hard_update_interval": (1, False), "num_envs": (1, False),
         "eval_every": (0, False), "eval_episodes": (1, False), "checkpoint_every": (0, False),
         "option_frames_max_steps": (1, False), "torch_threads": (1, True), "eps_annealing_frames": (0, False),
+        "demo_random_episodes": (0, False),
     }  # fmt: skip
     _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {
         "repeat_action_probability": (0.0, 1.0), "gamma": (0.0, 1.0), "eps_init": (0.0, 1.0), "eps_end": (0.0, 1.0),
@@ -126,8 +143,10 @@ class AtariConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}.")
-        if self.ram_encoding not in ("one_hot", "bytes"):
-            raise ValueError(f"ram_encoding must be 'one_hot' or 'bytes', got {self.ram_encoding!r}.")
+        for name, choices in (("ram_encoding", ("one_hot", "bytes")), ("option_encoding", ("one_hot", "bytes")),
+                              ("env_semantics", ("project", "paper")), ("discount_per", ("step", "decision"))):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {choices}, got {getattr(self, name)!r}.")
         for name in ("hidden_sizes", "options_num_cells"):
             sizes = getattr(self, name)
             if not isinstance(sizes, (tuple, list)) or not sizes or not all(
@@ -168,6 +187,25 @@ class AtariConfig:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.RUN_ONLY_FIELDS}
 
     def env_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`~torchrl_options.envs.atari.make_atari_ram_env` that make the game: the
+        env fields, or :data:`~torchrl_options.envs.atari.PAPER_ENV_SETTINGS` with ``env_semantics="paper"``.
+
+        Examples:
+            >>> paper = AtariConfig(env_semantics="paper", frame_skip=3).env_kwargs()
+            >>> paper["frame_skip"], paper["clip_rewards"], paper["max_episode_steps"]
+            ((2, 5), False, 10000)
+            >>> AtariConfig(env_semantics="paper", max_episode_steps=200).env_kwargs()["max_episode_steps"]
+            200
+            >>> AtariConfig(frame_skip=3).env_kwargs()["frame_skip"]
+            3
+        """
+        if self.env_semantics == "paper":
+            from torchrl_options.envs.atari import PAPER_ENV_SETTINGS
+
+            settings = dict(PAPER_ENV_SETTINGS)
+            if self.max_episode_steps is not None:
+                settings["max_episode_steps"] = self.max_episode_steps
+            return settings
         return dict(
             frame_skip=self.frame_skip,
             repeat_action_probability=self.repeat_action_probability,

@@ -5,19 +5,28 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 
+import torch
 from filelock import FileLock
 
 from torchrl_options.checkpoints import save_file, scoped_seed
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
 from torchrl_options.experiments.atari.config import AtariConfig
 from torchrl_options.experiments.atari.figures import write_option_frames
-from torchrl_options.experiments.atari.utils import _close, _greedy_rollouts, _load_if, _make_agent, _num_actions
+from torchrl_options.experiments.atari.utils import (
+    _close,
+    _env_factory,
+    _greedy_rollouts,
+    _load_if,
+    _make_agent,
+    _num_actions,
+)
 from torchrl_options.experiments.sweep import Cell, CellResult
 
-__all__ = ["run_atari_cell", "option_usage"]
+__all__ = ["run_atari_cell", "option_usage", "demonstrations_log_likelihood"]
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +41,8 @@ def _evaluate_if_due(agent, config: AtariConfig, offset: int) -> None:
     if done // config.eval_every > last // config.eval_every:
         batch = config.num_envs if config.vector_env else 1  # evaluate() plays one env from the factory
         episodes_per_game = -(-config.eval_episodes // batch)
-        agent.record_evaluation(config.eval_episodes, episodes_per_game * (config.max_episode_steps or 27_000))
+        max_steps = config.env_kwargs()["max_episode_steps"] or 27_000
+        agent.record_evaluation(config.eval_episodes, episodes_per_game * max_steps)
 
 
 def _train_episodes(agent, num_episodes: int, partial_path: str, config: AtariConfig, offset: int = 0) -> None:
@@ -78,6 +88,8 @@ def _phase1(game: str, config: AtariConfig, seed: int, seed_dir: str):
 
 
 def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
+    """Greedy demonstrations of phase 1's DQN, their quality gate, and DDO; the options, cached in
+    ``<seed_dir>/options.pt``, with what phase 2 measured in ``<seed_dir>/phase2.json`` (see :func:`phase2_report`)."""
     from torchrl_options.discovery import discover_options, load_options, save_options
 
     path = os.path.join(seed_dir, "options.pt")
@@ -88,10 +100,21 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     demos = _greedy_rollouts(agent, game, config, seed, config.num_demonstrations, config.demo_max_steps)
     demo_frames = int(sum(t.numel() for t in demos))
     k = config.options_for(game)
+    num_actions = _num_actions(game, config)
+    demos = [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated"),
+                      ("next", "reward")) for t in demos]  # fmt: skip
+    options = None
+    if config.option_encoding == "one_hot":
+        from torchrl_options.modules import OneHotByteOptions
+
+        with scoped_seed(seed):  # the initial weights come from the seed alone
+            options = OneHotByteOptions(int(demos[0]["observation"].shape[-1]), num_actions, k,
+                                        num_cells=list(config.options_num_cells), value_scale=1 / 255)  # fmt: skip
     result = discover_options(
-        [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated")) for t in demos],
+        demos,
         num_options=k,
-        num_actions=_num_actions(game, config),
+        options=options,
+        num_actions=num_actions,
         num_cells=list(config.options_num_cells),
         activation="tanh",
         num_iterations=config.ddo_iterations,
@@ -105,19 +128,79 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         progress=False,
         return_info=True,
     )
+    options = result.options.cpu()
+    demo_returns = [float(t["next", "reward"].sum()) for t in demos]
+    epsilon = float(agent.exploration.eps)
     metadata = {
         "game": game,
         "num_options": k,
+        "option_encoding": config.option_encoding,
         "demo_frames": demo_frames,
-        "demo_returns": [float(t["next", "reward"].sum()) for t in demos],
+        "demo_returns": demo_returns,
         "log_likelihood_per_step": result.final_log_likelihood_per_step,
+        # every demonstration step is the greedy action, which the epsilon-greedy demonstrator takes with
+        # probability 1 - eps + eps / A
+        "options_log_likelihood_per_step": demonstrations_log_likelihood(options, demos),
+        "demonstrator_log_likelihood_per_step": math.log(1.0 - epsilon + epsilon / num_actions),
+        "demonstrator_epsilon": epsilon,
         "option_duration": result.history[-1].get("option_duration", float("nan")) if result.history else float("nan"),
+        **_quality_gate(game, config, seed, demo_returns),
         "seconds": time.time() - t0,
     }
-    options = result.options.cpu()
     save_options(options, path, metadata=metadata)
-    logger.info("%s seed %d: DDO done, %s", game, seed, metadata)
+    with open(os.path.join(seed_dir, "phase2.json"), "w") as f:
+        json.dump(metadata, f)
+    logger.info("%s seed %d: DDO done, %s", game, seed, {k: v for k, v in metadata.items() if k != "demo_returns"})
     return options, metadata
+
+
+def demonstrations_log_likelihood(options, demos, *, chunk: int = 8) -> float:
+    """The log-likelihood per step of trajectories under ``options`` (uniform meta-control, DDO's model: the
+    options' actions and terminations marginalised over), every trajectory whole, ``chunk`` at a time.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options import OptionsMLP
+        >>> one = OptionsMLP(2, 3, 1)  # one option: the likelihood is its policy's, whatever its terminations
+        >>> demo = TensorDict({"observation": torch.randn(5, 2), "action": torch.zeros(5, dtype=torch.long),
+        ...                    "next": {"observation": torch.randn(5, 2)}}, [5])
+        >>> log_pi = one(demo.clone())["option_logits"][:, 0].log_softmax(-1)[:, 0]
+        >>> abs(demonstrations_log_likelihood(one, [demo]) - float(log_pi.mean().detach())) < 1e-5
+        True
+    """
+    from torchrl_options import as_trajectory_batch, DDOLoss
+
+    loss = DDOLoss(options, None, reduction="sum", diagnostics=False)
+    total, steps = 0.0, 0
+    with torch.no_grad():
+        for i in range(0, len(demos), chunk):
+            batch = as_trajectory_batch(list(demos[i : i + chunk]))
+            total -= float(loss(batch)["loss_ddo"])
+            steps += int(batch.get(("collector", "mask")).sum())
+    return total / max(steps, 1)
+
+
+def _quality_gate(game: str, config: AtariConfig, seed: int, demo_returns: list[float]) -> dict:
+    """The random policy's mean return on the same game (``demo_random_episodes`` episodes of at most
+    ``demo_max_steps`` steps) and whether the demonstrations are no better (a degenerate demonstrator: logged)."""
+    if not config.demo_random_episodes:
+        return {"random_returns": [], "degenerate_demonstrator": None}
+    env = _env_factory(game, config, seed)()
+    env.set_seed(seed + 888)
+    with torch.no_grad(), scoped_seed(seed + 888):  # the random actions come from the seed, the caller's RNG is kept
+        returns = [float(env.rollout(config.demo_max_steps)["next", "reward"].sum())
+                   for _ in range(config.demo_random_episodes)]  # fmt: skip
+    env.close()
+    demo_mean, random_mean = sum(demo_returns) / len(demo_returns), sum(returns) / len(returns)
+    degenerate = demo_mean <= random_mean
+    if degenerate:
+        logger.warning(
+            "%s seed %d: degenerate demonstrator: the %d greedy demonstrations return %.2f on average, no better than "
+            "a random policy's %.2f over %d episodes; DDO runs on them as the paper's protocol does.",
+            game, seed, len(demo_returns), demo_mean, random_mean, len(returns),
+        )  # fmt: skip
+    return {"random_returns": returns, "degenerate_demonstrator": bool(degenerate)}
 
 
 def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:

@@ -2,6 +2,7 @@
 intervals over seeds, paired differences), aggregates over games, greedy evaluations and option usage."""
 from __future__ import annotations
 
+import glob
 import json
 import logging
 import os
@@ -24,6 +25,7 @@ __all__ = [
     "atari_aggregates",
     "greedy_evaluation_markdown",
     "option_usage_markdown",
+    "demonstration_fit_markdown",
 ]
 
 logger = logging.getLogger(__name__)
@@ -399,4 +401,52 @@ def option_usage_markdown(out_dir: str) -> str:
         means = [float(np.nanmean([i[k] for i in infos])) if any(np.isfinite(i[k]) for i in infos) else float("nan")
                  for k in keys]
         lines.append(f"| {game} | {condition} | {len(infos)} | {means[0]:.2f} | {means[1]:.2f} | {means[2]:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
+    """A Markdown table of phase 2 per game, from ``<out_dir>/<game>/seed<s>/phase2.json``: the greedy
+    demonstrations' log-likelihood per step under the discovered options next to the epsilon-greedy demonstrator's
+    own (the log-probability of its greedy actions, ``log(1 - eps + eps / A)``), how many seeds' options come within
+    ``tolerance`` nats per step of it, and the quality gate (seeds whose demonstrator was degenerate: demonstrations
+    no better than a random policy). Empty when no seed has finished phase 2.
+
+    Examples:
+        >>> import json, os, tempfile
+        >>> out = tempfile.mkdtemp()
+        >>> for seed, ll in ((0, -0.03), (1, -0.2)):
+        ...     os.makedirs(os.path.join(out, "Pooyan", f"seed{seed}"))
+        ...     info = {"option_encoding": "one_hot", "options_log_likelihood_per_step": ll,
+        ...             "demonstrator_log_likelihood_per_step": -0.04, "demo_returns": [3.0, 5.0],
+        ...             "random_returns": [4.5], "degenerate_demonstrator": seed == 1}
+        ...     with open(os.path.join(out, "Pooyan", f"seed{seed}", "phase2.json"), "w") as f:
+        ...         json.dump(info, f)
+        >>> print(demonstration_fit_markdown(out).splitlines()[-1])
+        | Pooyan | one_hot | 2 | -0.115 [-0.200, -0.030] | -0.040 | 1 of 2 | 4.00 | 4.50 | 1 of 2 |
+    """
+    rows: dict[str, list[dict]] = defaultdict(list)
+    for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "phase2.json"))):
+        with open(path) as f:
+            rows[os.path.basename(os.path.dirname(os.path.dirname(path)))].append(json.load(f))
+    if not rows:
+        return ""
+    lines = [
+        "| game | option encoding | seeds | options: log-likelihood per step (mean [min, max]) | demonstrator's own | "
+        f"seeds within {tolerance} nats | demonstrations' mean return | random policy's | degenerate demonstrators |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for game, infos in sorted(rows.items()):
+        ll = [i["options_log_likelihood_per_step"] for i in infos]
+        own = [i["demonstrator_log_likelihood_per_step"] for i in infos]
+        within = sum(a >= b - tolerance for a, b in zip(ll, own))
+        demo = float(np.mean([np.mean(i["demo_returns"]) for i in infos]))
+        rand = [np.mean(i["random_returns"]) for i in infos if i.get("random_returns")]
+        gated = [i for i in infos if i.get("degenerate_demonstrator") is not None]
+        encodings = ", ".join(sorted({str(i.get("option_encoding", "bytes")) for i in infos}))
+        lines.append(
+            f"| {game} | {encodings} | {len(infos)} | {np.mean(ll):.3f} [{min(ll):.3f}, {max(ll):.3f}] | "
+            f"{np.mean(own):.3f} | {within} of {len(infos)} | {demo:.2f} | "
+            f"{f'{np.mean(rand):.2f}' if rand else 'not measured'} | "
+            f"{sum(bool(i['degenerate_demonstrator']) for i in gated)} of {len(gated)} |"
+        )
     return "\n".join(lines) + "\n"

@@ -1,0 +1,73 @@
+"""How closely DDO's options fit their demonstrator on an Atari RAM game: one-hot byte options (the paper's encoding,
+``OneHotByteOptions``) against options reading ``bytes / 255`` (``OptionsMLP``).
+
+A short phase 1 (DQN over actions, one-hot Q-network), greedy demonstrations of it, then DDO twice on the same
+demonstrations, once per option encoding (the pipeline's own phase 2, ``torchrl_options.experiments.atari``). Prints,
+per encoding, the demonstrations' log-likelihood per step under the options next to the epsilon-greedy
+demonstrator's own (``log(1 - eps + eps / A)``), and the gap. CPU, a few minutes on one core:
+
+    python benchmarks/bench_atari_option_fit.py --game Pooyan --demos 10 --seeds 0 1
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+
+import torch
+
+from torchrl_options.experiments.atari import AtariConfig
+from torchrl_options.experiments.atari.pipeline import _phase2, _train_episodes
+from torchrl_options.experiments.atari.utils import _close, _make_agent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--game", default="Pooyan")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--phase1-episodes", type=int, default=20)
+    parser.add_argument("--max-steps", type=int, default=200, help="episode and demonstration cap (steps)")
+    parser.add_argument("--demos", type=int, default=10)
+    parser.add_argument("--ddo-iterations", type=int, default=100)
+    parser.add_argument("--ddo-m-steps", type=int, default=5)
+    parser.add_argument("--ddo-lr", type=float, default=0.005)
+    parser.add_argument("--cells", type=int, nargs="+", default=[64, 64])
+    parser.add_argument("--env-semantics", default="project", choices=["project", "paper"])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    for seed in args.seeds:
+        base = dict(env_semantics=args.env_semantics, max_episode_steps=args.max_steps, noop_max=5,
+                    phase1_episodes=args.phase1_episodes, num_demonstrations=args.demos, demo_max_steps=args.max_steps,
+                    options_num_cells=tuple(args.cells), ddo_iterations=args.ddo_iterations, ddo_batch_size=None,
+                    ddo_lr=args.ddo_lr, ddo_m_steps=args.ddo_m_steps, hidden_sizes=(64, 64, 64), lr=1e-3,
+                    learning_starts=200, frames_per_batch=64, updates_per_batch=4, hard_update_interval=200,
+                    checkpoint_every=0, demo_random_episodes=5)  # fmt: skip
+        agent = _make_agent(args.game, AtariConfig(**base), seed, "actions")
+        t0 = time.time()
+        _train_episodes(agent, args.phase1_episodes, os.devnull, AtariConfig(**base))
+        t1 = time.time() - t0
+        for encoding in ("one_hot", "bytes"):
+            config = AtariConfig(**base, option_encoding=encoding)
+            with tempfile.TemporaryDirectory() as d:
+                t0 = time.time()
+                _, meta = _phase2(args.game, config, seed, d, agent)
+            rows.append((seed, encoding, meta, time.time() - t0, t1))
+        _close(agent)
+    print(f"\n{args.game}, {args.demos} greedy demonstrations of <= {args.max_steps} steps after {args.phase1_episodes} "
+          f"DQN episodes; DDO {args.ddo_iterations} iterations x {args.ddo_m_steps} G-steps, lr {args.ddo_lr}, "
+          f"hidden {args.cells}, env {args.env_semantics}\n")
+    print("| seed | options | K | demo steps | options: log-lik / step | demonstrator's own | gap (nats/step) | "
+          "within 0.05 | demo mean return | random policy's | DDO s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for seed, encoding, meta, seconds, _ in rows:
+        ll, own = meta["options_log_likelihood_per_step"], meta["demonstrator_log_likelihood_per_step"]
+        demo = sum(meta["demo_returns"]) / len(meta["demo_returns"])
+        rand = sum(meta["random_returns"]) / max(len(meta["random_returns"]), 1)
+        print(f"| {seed} | {encoding} | {meta['num_options']} | {meta['demo_frames']} | {ll:.4f} | {own:.4f} | "
+              f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | {seconds:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
