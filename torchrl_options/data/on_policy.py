@@ -37,6 +37,7 @@ from torchrl_options.data.smdp import SMDPTransitions
 __all__ = ["OnPolicyDecisions"]
 
 _ENV_INDEX = "_on_policy_env_index"
+_EVERY_STEP = "_on_policy_no_decision_key"  # absent from the data: every step is a decision
 
 
 class OnPolicyDecisions:
@@ -58,9 +59,10 @@ class OnPolicyDecisions:
             it discounts by ``gamma ** steps_to_next_obs``).
 
     Keyword Args:
-        decision_key (NestedKey): the decision record of the executor whose decisions the policy makes (the
-            top one of a hierarchy: ``("next", "option_decision_2")`` for a level-2 executor). Defaults to
-            ``("next", "option_decision")``.
+        decision_key (NestedKey or None): the decision record of the executor whose decisions the policy makes
+            (the top one of a hierarchy: ``("next", "option_decision_2")`` for a level-2 executor). Defaults to
+            ``("next", "option_decision")``. ``None``: every step is a decision (an env without executor; the
+            batches then only gain ``steps_to_next_obs = 1`` and the per-env cuts).
         reward_key, done_key (NestedKey): Defaults to ``("next", "reward")`` and ``("next", "done")``.
         terminated_key, truncated_key (NestedKey): Defaults to ``("next", "terminated")`` and
             ``("next", "truncated")``.
@@ -97,7 +99,7 @@ class OnPolicyDecisions:
         self,
         gamma: float,
         *,
-        decision_key: NestedKey = ("next", "option_decision"),
+        decision_key: NestedKey | None = ("next", "option_decision"),
         reward_key: NestedKey = ("next", "reward"),
         done_key: NestedKey = ("next", "done"),
         terminated_key: NestedKey = ("next", "terminated"),
@@ -105,8 +107,9 @@ class OnPolicyDecisions:
         steps_key: NestedKey = "steps_to_next_obs",
         end_of_batch_key: NestedKey = ("next", "end_of_batch"),
     ):
+        self.every_step = decision_key is None
         self.smdp = SMDPTransitions(
-            gamma, decision_key=decision_key, reward_key=reward_key, done_key=done_key, steps_key=steps_key
+            gamma, decision_key=_EVERY_STEP if decision_key is None else decision_key, reward_key=reward_key, done_key=done_key, steps_key=steps_key
         )
         self.done_key = unravel_key(done_key)
         self.terminated_key = unravel_key(terminated_key)
@@ -119,9 +122,9 @@ class OnPolicyDecisions:
         return self.smdp.gamma
 
     @property
-    def decision_key(self) -> NestedKey:
-        """The executor's decision record read from the step-level data."""
-        return self.smdp.keys.decision
+    def decision_key(self) -> NestedKey | None:
+        """The executor's decision record read from the step-level data (``None``: every step)."""
+        return None if self.every_step else self.smdp.keys.decision
 
     @property
     def num_pending(self) -> int:
@@ -139,7 +142,7 @@ class OnPolicyDecisions:
             raise TypeError(f"OnPolicyDecisions expects a TensorDict of step-level data, got {type(data).__name__}.")
         if data.ndim == 0:
             raise ValueError("OnPolicyDecisions expects data with a time dimension (shape [T] or [*B, T]).")
-        if data.get(self.decision_key, None) is None:
+        if not self.every_step and data.get(self.decision_key, None) is None:
             raise ValueError(
                 f"OnPolicyDecisions: the data has no {self.decision_key!r} entry (decision_key). Collect with an "
                 "OptionExecutor in the env, or pass the decision key of its level (e.g. ('next', "
