@@ -155,7 +155,12 @@ class OnPolicyDecisions:
         if data.get(self.terminated_key, None) is None:
             # the cuts below set done: keep the episode ends apart from them
             data.set(self.terminated_key, data.get(self.done_key).clone())
-        out = self.smdp(data)
+        if self.every_step:  # each step is a complete decision of one step
+            out = data.reshape(-1)
+            reward = out.get(self.smdp.keys.reward)
+            out.set(self.smdp.keys.steps, torch.ones(reward.shape, dtype=torch.long, device=reward.device))
+        else:
+            out = self.smdp(data)
         env = out.pop(_ENV_INDEX)
         last = torch.ones_like(env, dtype=torch.bool)
         last[:-1] = env[1:] != env[:-1]
