@@ -140,7 +140,18 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
     for key in ("num_starts", "max_length"):
         _int(pictures, key, f"pictures.{key}", 1, allow_none=True)
     _check_env(cfg)
-    _check_dqn(cfg)
+    algorithm = cfg.get("algorithm", "dqn")
+    _choice(algorithm, "algorithm", ("dqn", "ppo"))
+    if algorithm == "ppo":
+        greedy = [name for name in cfg["settings_to_run"] if settings[name].get("source") == "greedy"]
+        if greedy:
+            raise SettingError(
+                f"settings_to_run: {greedy} pre-train a DQN agent (source: greedy); algorithm=ppo runs supervised "
+                "settings only."
+            )
+        _check_ppo(cfg)
+    else:
+        _check_dqn(cfg)
 
 
 def _check_env(cfg: Mapping[str, Any]) -> None:
@@ -172,6 +183,22 @@ def _check_dqn(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"dqn.{err}") from None
     except ValueError as err:
         raise SettingError(f"dqn.{err}") from None
+
+
+def _check_ppo(cfg: Mapping[str, Any]) -> None:
+    from torchrl_options.agents.ppo import OptionsPPOConfig
+
+    ppo = dict(_section(cfg, "ppo"))
+    if isinstance(ppo.get("hidden_sizes"), (list, tuple)):
+        ppo["hidden_sizes"] = tuple(ppo["hidden_sizes"])
+    try:
+        OptionsPPOConfig(**ppo)
+    except TypeError as err:
+        if "unexpected keyword" in str(err):
+            raise SettingError(f"ppo: unknown setting ({str(err).split('argument')[-1].strip()}).") from None
+        raise SettingError(f"ppo.{err}") from None
+    except ValueError as err:
+        raise SettingError(f"ppo.{err}") from None
 
 
 def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> None:
