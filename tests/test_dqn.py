@@ -35,10 +35,16 @@ def config(mode, **kwargs):
     return OptionsDQNConfig(**defaults)
 
 
+def seeded_dqn(*args, **kwargs) -> OptionsDQN:
+    """The agent does not seed torch's global generator (network init, exploration): the caller does."""
+    torch.manual_seed(0)
+    return OptionsDQN(*args, **kwargs)
+
+
 def test_options_learn_what_primitive_dqn_cannot():
-    with_options = OptionsDQN(corridor, config("both"), options=go_right_options(LENGTH), num_options=2)
+    with_options = seeded_dqn(corridor, config("both"), options=go_right_options(LENGTH), num_options=2)
     log = with_options.train()
-    primitive = OptionsDQN(corridor, config("actions"))
+    primitive = seeded_dqn(corridor, config("actions"))
     primitive.train()
     assert with_options.frames == primitive.frames >= 2_000
     # same budget: the option agent reaches the goal greedily every time, the primitive one never
@@ -54,13 +60,13 @@ def test_options_learn_what_primitive_dqn_cannot():
 
 def test_checkpoint_resume_options_only(tmp_path):
     cfg = config("options", total_frames=256, learning_starts=8, batch_size=8)
-    agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    agent = seeded_dqn(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
     assert agent.env.full_action_spec_unbatched["action"].n == 2
     agent.train()
     assert agent.frames == 256 and agent.gradient_steps > 0
     agent.save(tmp_path / "ckpt.pt", include_buffer=True)
 
-    resumed = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    resumed = seeded_dqn(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
     resumed.load(tmp_path / "ckpt.pt")
     for p, q in zip(agent.loss_module.parameters(), resumed.loss_module.parameters()):
         torch.testing.assert_close(p, q)
@@ -84,7 +90,7 @@ def test_config_errors():
 def test_batches_without_a_finished_decision():
     # 4-frame batches while a "go right" option runs for 19 steps: most batches end no decision
     cfg = config("options", total_frames=64, frames_per_batch=4, learning_starts=1, batch_size=1)
-    agent = OptionsDQN(lambda: Corridor(LENGTH, max_steps=MAX_STEPS), cfg, options=go_right_options(LENGTH), num_options=2)
+    agent = seeded_dqn(lambda: Corridor(LENGTH, max_steps=MAX_STEPS), cfg, options=go_right_options(LENGTH), num_options=2)
     agent.train()
     assert agent.frames == 64
     assert 0 < len(agent.replay_buffer) < 16
@@ -94,7 +100,7 @@ def test_batches_without_a_finished_decision():
 
 def test_callback_stops_training_and_checkpoints_do_not_alias(tmp_path):
     cfg = config("actions", total_frames=10_000, learning_starts=8, batch_size=8)
-    agent = OptionsDQN(corridor, cfg)
+    agent = seeded_dqn(corridor, cfg)
     calls = []
 
     def stop_after_three_batches(agent_, batch):
@@ -104,7 +110,7 @@ def test_callback_stops_training_and_checkpoints_do_not_alias(tmp_path):
     agent.train(callback=stop_after_three_batches)
     assert len(calls) == 3 and agent.frames == 3 * cfg.frames_per_batch
     state = agent.state_dict()
-    resumed = OptionsDQN(corridor, cfg)
+    resumed = seeded_dqn(corridor, cfg)
     resumed.load_state_dict(state)
     before = len(state["log"]["episode_end_frames"])
     resumed.train(4 * MAX_STEPS * 4)  # every env finishes at least one more episode
@@ -117,7 +123,7 @@ def test_callback_stops_training_and_checkpoints_do_not_alias(tmp_path):
 def test_max_decisions_limits_episodes_in_decisions(mode):
     cfg = config(mode, total_frames=512, learning_starts=8, batch_size=8, max_decisions=3)
     options = dict(options=go_right_options(LENGTH), num_options=2) if mode == "both" else {}
-    agent = OptionsDQN(corridor, cfg, **options)
+    agent = seeded_dqn(corridor, cfg, **options)
     assert "decision_count" in agent.env.observation_spec.keys()
     log = agent.train()
     assert agent.frames == 512 and agent.gradient_steps > 0
@@ -146,7 +152,7 @@ def test_collector_is_given_the_env_device(monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(dqn_mod, "Collector", spy)
-    agent = OptionsDQN(
+    agent = seeded_dqn(
         lambda: Corridor(length=4, device="cpu"), OptionsDQNConfig(mode="actions", frames_per_batch=8, learning_starts=8)
     )
     agent.train(total_frames=8)
@@ -159,7 +165,7 @@ def test_collector_is_given_the_env_device(monkeypatch):
 def test_cuda_agent_on_cpu_env_actions_arrive_intact():
     """A CUDA Q-network driving a CPU env: at every step the env receives exactly the action the policy chose
     (an unsynchronised device-to-host copy shows up here as a mismatch, or as an out-of-range action)."""
-    agent = OptionsDQN(lambda: Corridor(LENGTH, max_steps=MAX_STEPS, batch_size=[4], device="cpu"),
+    agent = seeded_dqn(lambda: Corridor(LENGTH, max_steps=MAX_STEPS, batch_size=[4], device="cpu"),
                        config("actions", total_frames=3_000, device="cuda"))
     checked = [0]
 
@@ -181,13 +187,13 @@ def test_optimizer_factory():
         made.append(lr)
         return torch.optim.Adam(params, lr=lr, fused=True)
 
-    agent = OptionsDQN(corridor, config("actions", total_frames=128, lr=3e-3), optimizer=factory)
+    agent = seeded_dqn(corridor, config("actions", total_frames=128, lr=3e-3), optimizer=factory)
     assert made == [3e-3] and agent.optimizer.defaults["fused"] is True
     before = [p.detach().clone() for p in agent.loss_module.parameters()]
     agent.train()
     assert agent.gradient_steps > 0
     assert any(not torch.equal(a, b) for a, b in zip(before, agent.loss_module.parameters()))  # it did step
-    default = OptionsDQN(corridor, config("actions"))
+    default = seeded_dqn(corridor, config("actions"))
     assert isinstance(default.optimizer, torch.optim.Adam) and not default.optimizer.defaults.get("fused")
     with pytest.raises(TypeError, match="optimizer must make a torch.optim.Optimizer, got list"):
         OptionsDQN(corridor, config("actions"), optimizer=lambda params, lr: list(params))
@@ -197,7 +203,8 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
     cfg = config("both", total_frames=512, learning_starts=8, batch_size=8, greedy_options=False)
 
     def run(evaluate: bool) -> OptionsDQN:
-        agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+        torch.manual_seed(0)  # the agent does not seed torch's global generator: the caller does
+        agent = seeded_dqn(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
 
         def callback(agent, batch):  # evaluations between collector batches, as the Atari recipe does
             if evaluate and agent.frames in (128, 320):
@@ -214,7 +221,7 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
     # the same games every time: evaluating twice in a row gives the same figure (options sample their actions)
     assert with_eval.record_evaluation(4, MAX_STEPS) == with_eval.record_evaluation(4, MAX_STEPS)
     with_eval.save(tmp_path / "ckpt.pt")
-    restored = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    restored = seeded_dqn(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
     restored.load(tmp_path / "ckpt.pt")
     assert restored.log.evaluations == with_eval.log.evaluations and len(restored.log.evaluations) == 4
     with pytest.raises(RuntimeError, match="max_steps"):
@@ -224,7 +231,7 @@ def test_record_evaluation_is_logged_checkpointed_and_leaves_training_unchanged(
     from torchrl.envs import NoopResetEnv, TransformedEnv
 
     noop_corridor = lambda: TransformedEnv(Corridor(LENGTH, max_steps=MAX_STEPS), NoopResetEnv(3, random=True))  # noqa
-    agent = OptionsDQN(noop_corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+    agent = seeded_dqn(noop_corridor, cfg, options=go_right_options(LENGTH), num_options=2)
     state = torch.get_rng_state().clone()
     agent.evaluate(2, MAX_STEPS)
     assert not torch.equal(state, torch.get_rng_state())
@@ -247,7 +254,7 @@ def test_intra_option_actions_buffer_holds_every_option_step():
     for intra in (False, True):
         cfg = config("both", total_frames=640, learning_starts=10**9, greedy_options=False, intra_option_actions=intra,
                      option_suffixes=intra, eps_annealing_frames=10**6)
-        agent = OptionsDQN(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
+        agent = seeded_dqn(corridor, cfg, options=go_right_options(LENGTH), num_options=2)
         agent.train(callback=count if intra else None)
         buffers.append(agent.replay_buffer[: len(agent.replay_buffer)].exclude("index"))
     plain, with_intra = buffers
@@ -283,7 +290,7 @@ def test_intra_option_actions_learn_primitive_values():
         cfg = config("both", total_frames=500, frames_per_batch=20, updates_per_batch=4, learning_starts=8,
                      batch_size=16, lr=0.02, eps_init=0.0, eps_end=0.0, hard_update_interval=10**6,
                      intra_option_actions=intra)
-        agent = OptionsDQN(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
+        agent = seeded_dqn(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
         agent.train()
         buf = agent.replay_buffer[: len(agent.replay_buffer)]
         decided = buf["action"] if not intra else buf["action"][~buf["intra_option"].reshape(-1)]
@@ -312,7 +319,7 @@ def test_option_suffixes_learn_option_values_where_never_decided():
         cfg = config("both", total_frames=600, frames_per_batch=20, updates_per_batch=4, learning_starts=8,
                      batch_size=16, lr=0.02, eps_init=0.0, eps_end=0.0, hard_update_interval=10**6, gamma=gamma,
                      option_suffixes=suffixes)
-        agent = OptionsDQN(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
+        agent = seeded_dqn(make, cfg, options=go_right_options(length), num_options=2, q_network=net)
         agent.train()
         buf = agent.replay_buffer[: len(agent.replay_buffer)]
         if suffixes:

@@ -254,6 +254,7 @@ def test_ppo_with_options_learns_where_primitive_ppo_does_not():
             hidden_sizes=(16,), seed=0,
         )  # fmt: skip
         options = None if mode == "actions" else go_right_options(24)
+        torch.manual_seed(0)  # the networks' initialisation and the policy's draws
         agent = OptionsPPO(
             lambda: Corridor(24, max_steps=40, batch_size=[8]), config, options=options,
             num_options=None if mode == "actions" else 2,

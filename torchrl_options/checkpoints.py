@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
+import inspect
 import os
 import pickle
 import random
@@ -23,7 +25,7 @@ import re
 import sys
 import uuid
 import zipfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +43,7 @@ __all__ = [
     "tensordict_from_plain",
     "rng_state",
     "set_rng_state",
+    "restores_global_rng",
     "scoped_seed",
     "convert_file",
 ]
@@ -268,6 +271,40 @@ def scoped_seed(seed: int) -> Iterator[None]:
         yield
     finally:
         set_rng_state(saved)
+
+
+def restores_global_rng(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Decorator for library functions that take a ``seed`` argument: when ``seed`` is given, the call may seed
+    and draw from torch's global generator (module initialisation does), and every global random state
+    (:func:`rng_state`) is put back as it was when the call returns or raises. Library code thus never changes
+    its caller's random numbers; recipes seed the global generators themselves.
+
+    Examples:
+        >>> import torch
+        >>> @restores_global_rng
+        ... def init(seed=None):
+        ...     torch.manual_seed(seed)
+        ...     return torch.nn.Linear(2, 2).weight.detach()
+        >>> state = torch.get_rng_state()
+        >>> torch.equal(init(seed=0), init(seed=0)), torch.equal(state, torch.get_rng_state())
+        (True, True)
+    """
+    signature = inspect.signature(func)
+    if "seed" not in signature.parameters:
+        raise TypeError(f"restores_global_rng needs a function with a `seed` parameter, got {func.__qualname__}.")
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        seed = signature.bind_partial(*args, **kwargs).arguments.get("seed")
+        if seed is None:
+            return func(*args, **kwargs)
+        saved = rng_state()
+        try:
+            return func(*args, **kwargs)
+        finally:
+            set_rng_state(saved)
+
+    return wrapper
 
 
 # ---------------------------------------------------------------------------------------------- legacy files

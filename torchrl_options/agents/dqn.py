@@ -91,7 +91,9 @@ class OptionsDQNConfig:
             env's own step limit stays a hard cap on primitive steps: set it well above ``max_decisions``.
             ``None`` (default): no decision limit.
         observation_key: the input of the default Q-network.
-        seed: seeds torch and the envs.
+        seed: seeds the envs, the collector and the option executors. Network initialisation and exploration draw
+            from torch's global generator, as TorchRL's modules do: call ``torch.manual_seed`` before building the
+            agent for a reproducible run (the recipes do).
         device: device of the networks and the replay buffer (the envs stay on their own device).
     """
 
@@ -279,7 +281,6 @@ class OptionsDQN:
             check_int(num_options, "num_options", minimum=1)
         if options is not None and not isinstance(options, TensorDictModuleBase):
             raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
-        torch.manual_seed(config.seed)
         self._executor_level = 0
         self.env_factory = env_factory
         self.options = options

@@ -73,7 +73,9 @@ class OptionsPPOConfig:
         max_grad_norm: gradient clipping (``None`` to disable).
         greedy_options: options act greedily instead of sampling their action.
         observation_key: the input of the default networks.
-        seed: seeds torch and the envs.
+        seed: seeds the envs, the collector and the option executors. Network initialisation and the policy's
+            sampling draw from torch's global generator, as TorchRL's modules do: call ``torch.manual_seed`` before
+            building the agent for a reproducible run (the recipes do).
         device: device of the networks (the envs stay on their own device).
     """
 
@@ -198,7 +200,6 @@ class OptionsPPO:
             check_int(num_options, "num_options", minimum=1)
         if options is not None and not isinstance(options, TensorDictModuleBase):
             raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
-        torch.manual_seed(config.seed)
         self.env_factory = env_factory
         self.options = options
         self.num_options = num_options

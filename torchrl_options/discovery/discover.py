@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
+from torchrl_options.checkpoints import restores_global_rng
 from torchrl_options.discovery._validation import check_discover_options, check_trajectories
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters
@@ -338,6 +339,7 @@ def _infer_in_features(td: TensorDictBase, obs_keys: Sequence[NestedKey]) -> int
     return total
 
 
+@restores_global_rng
 def discover_options(
     trajectories: TensorDictBase | Sequence[TensorDictBase] | ReplayBuffer,
     num_options: int,
@@ -437,7 +439,8 @@ def discover_options(
             optimizer (given or made), stepped once per iteration, e.g.
             ``lambda opt: torch.optim.lr_scheduler.CosineAnnealingLR(opt, num_iterations)``. Defaults to none.
         device: where to train. Defaults to the data's device.
-        seed (int, optional): seeds module initialisation, minibatch order and clustering.
+        seed (int, optional): seeds module initialisation, minibatch order and clustering; the global random
+            states are restored on return, so the caller's random numbers do not change.
         progress (bool): show a tqdm progress bar. Defaults to ``True``.
         trajectory_key (NestedKey): trajectory ids used to split replay-buffer samples.
         return_info (bool): return a :class:`DiscoveryResult` (options, meta-control, history).

@@ -266,6 +266,7 @@ def make_agent(
             env = env.append_transform(executor.clone())
         return env
 
+    torch.manual_seed(seed)  # the recipe seeds the global generator (network init, exploration); the agent does not
     if cfg.get("algorithm", "dqn") == "ppo":
         from torchrl_options.agents.ppo import OptionsPPO
 

@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.checkpoints import restores_global_rng
 from torchrl_options.discovery._validation import check_step_data
 from torchrl_options.discovery.tabulated import expected_counts, tabulate_states
 from torchrl_options.discovery.discover import (
@@ -58,6 +59,7 @@ def _per_level(value, num_levels: int, name: str) -> list:
     return [value] * num_levels
 
 
+@restores_global_rng
 def discover_hierarchy(
     trajectories: TensorDictBase | Sequence[TensorDictBase],
     num_options: Sequence[int],
@@ -128,7 +130,8 @@ def discover_hierarchy(
         optimizer: a factory called as ``optimizer(params, lr=lr)``, once per level and start. Defaults to Adam.
         lr (float): learning rate. Defaults to 0.03.
         device: where to train. Defaults to the data's device.
-        seed (int, optional): seeds initialisation and minibatch order.
+        seed (int, optional): seeds initialisation and minibatch order; the global random states are restored on
+            return, so the caller's random numbers do not change.
         progress (bool): tqdm progress bars. Defaults to ``True``.
         return_info (bool): return a :class:`HierarchyDiscoveryResult` with the training history.
         log_every (int): log (and record) the full diagnostics every this many iterations; other iterations
@@ -207,7 +210,8 @@ def discover_hierarchy(
     for d, (K, meta, n_iter, m, n_restarts) in enumerate(zip(num_options, metas, iterations, m_steps, restarts)):
         level = hierarchy.num_levels + 1
         if level == 1:
-            result = discover_options(
+            # unwrapped: this call's own seeding is restored by the decorator of discover_hierarchy, not here
+            result = discover_options.__wrapped__(
                 data, K, meta_control=meta, num_actions=num_actions, obs_keys=obs_keys, action_key=action_key,
                 num_cells=num_cells, activation=activation, architecture=architecture, init=init,
                 num_iterations=n_iter, m_steps=m, tol=tol, patience=patience, restarts=n_restarts,

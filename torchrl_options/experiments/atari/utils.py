@@ -52,6 +52,7 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
         **settings, mode=mode, total_frames=10**12, greedy_options=greedy_options,
         intra_option_actions=intra_option_actions, option_suffixes=option_suffixes, seed=seed,
     )  # fmt: skip
+    torch.manual_seed(seed)  # the recipe seeds the global generator (network init, exploration); the agent does not
     return OptionsDQN(
         _env_factory(game, config, seed, batched=True), dqn_config, options=options, num_options=num_options,
         q_network=q_net, optimizer=partial(torch.optim.Adam, fused=True) if config.fused_adam else None,
