@@ -96,8 +96,15 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
     settings, conditions = _section(cfg, "settings"), _section(cfg, "conditions")
     _names(cfg.get("settings_to_run"), "settings_to_run", settings, "settings")
     _names(cfg.get("conditions_to_run"), "conditions_to_run", conditions, "conditions")
+    algorithm = cfg.get("algorithm", "dqn")
+    _choice(algorithm, "algorithm", ("dqn", "ppo"))
     for name in cfg["settings_to_run"]:
         setting = _section(settings, name)
+        if algorithm == "ppo" and isinstance(setting, Mapping) and setting.get("source") == "greedy":
+            raise SettingError(
+                f"settings_to_run: {name!r} pre-trains a DQN agent (source: greedy); algorithm=ppo runs supervised "
+                "settings only."
+            )
         _choice(setting.get("source"), f"settings.{name}.source", ("supervisor", "greedy"))
         if setting["source"] == "greedy":
             _int(setting, "pretrain_episodes", f"settings.{name}.pretrain_episodes", 1)
@@ -140,15 +147,7 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
     for key in ("num_starts", "max_length"):
         _int(pictures, key, f"pictures.{key}", 1, allow_none=True)
     _check_env(cfg)
-    algorithm = cfg.get("algorithm", "dqn")
-    _choice(algorithm, "algorithm", ("dqn", "ppo"))
-    if algorithm == "ppo":
-        greedy = [name for name in cfg["settings_to_run"] if settings[name].get("source") == "greedy"]
-        if greedy:
-            raise SettingError(
-                f"settings_to_run: {greedy} pre-train a DQN agent (source: greedy); algorithm=ppo runs supervised "
-                "settings only."
-            )
+    if cfg.get("algorithm", "dqn") == "ppo":
         _check_ppo(cfg)
     else:
         _check_dqn(cfg)
