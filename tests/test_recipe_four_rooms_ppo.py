@@ -34,7 +34,7 @@ def test_four_rooms_ppo_recipe_tiny_and_resume(tmp_path):
     with open(out / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert {r["condition"] for r in rows} == {"A", "H1u", "H2u"}
-    assert len([r for r in rows if r["condition"] == "A"]) == 32
+    assert len([r for r in rows if r["condition"] == "A"]) == 16
     assert len((out / "cells" / "ran.txt").read_text().split()) == 3  # the finished cell was not run again
     assert (out / "cells" / "supervised-A-seed0" / "ppo.pt").exists()
     assert (out / "cells" / "supervised-seed0" / "hierarchy-K4x2-uniform.pt").exists()
