@@ -16,7 +16,9 @@ decisions (Sutton, Precup and Singh, 1999). Its policy gradient is
     A(s_i, o_i) = R_i + \gamma^{k_i} V(s_{i+1}) - V(s_i), \qquad
     R_i = \sum_{j=0}^{k_i - 1} \gamma^j r_{\tau_i + j},
 
-where ``k_i`` is the number of primitive steps the decision lasted. :class:`OnPolicyDecisions` turns each
+where ``k_i`` is the number of primitive steps the decision lasted (PPO, as usual, leaves out the state weighting
+:math:`\gamma^{\tau_i}`; with ``gamma = 1`` the two agree, which ``tests/test_ppo.py`` checks against the exact
+gradient of a small SMDP). :class:`OnPolicyDecisions` turns each
 collector batch into one entry per decision (with :class:`~torchrl_options.data.SMDPTransitions`): the root
 entries of the decision step (observation, the policy's action and its log-probability), the discounted reward
 ``R_i``, ``steps_to_next_obs = k_i``, the observation of the next decision and the done flags of the decision's
