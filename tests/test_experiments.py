@@ -198,23 +198,28 @@ def test_sweep_bad_backend(tmp_path):
         run_sweep(_constant_cell, [Cell("t", "A", 0)], ResultsLog(tmp_path / "r.csv"), backend="slurm")
 
 
-@pytest.mark.parametrize(
-    "folder, expected",
-    [
-        ("intervals_old_vs_new/four_rooms_default", {"A": "0.283 [0.147, 0.420]",
-                                                     "H1u - A": "+0.180 [+0.072, +0.288] | ahead",
-                                                     "H1s - A": "+0.167 [-0.045, +0.378] | no evidence either way"}),
-        ("intervals_old_vs_new/four_rooms_dqn64", {"A": "0.340 [0.146, 0.534]",
-                                                   "H1u - A": "+0.067 [-0.271, +0.404] | no evidence"}),
-        ("intervals_old_vs_new/four_rooms_default_1000", {"H2u": "0.830 [0.679, 0.981]",
-                                                          "H2u - A": "+0.427 [+0.302, +0.552] | ahead"}),
-        ("four_rooms_default", {"A": "0.260 [0.097, 0.423]", "H1u - A": "+0.170 [-0.033, +0.373] | no evidence",
-                                "H1s - A": "+0.150 [+0.019, +0.281] | ahead"}),
-        ("four_rooms_dqn64", {"A": "0.350 [0.284, 0.416]", "H1u - A": "+0.090 [-0.211, +0.391] | no evidence"}),
-    ],
-)
+# Figures re-derived from the results kept under results/: quoted on docs/experiments/gridworld.md (the GridWorld
+# experiment log), the headline ones also in the README's results table.
+KEPT_GRIDWORLD_FIGURES = [
+    ("intervals_old_vs_new/four_rooms_default", {"A": "0.283 [0.147, 0.420]",
+                                                 "H1u - A": "+0.180 [+0.072, +0.288] | ahead",
+                                                 "H1s - A": "+0.167 [-0.045, +0.378] | no evidence either way"}),
+    ("intervals_old_vs_new/four_rooms_dqn64", {"A": "0.340 [0.146, 0.534]",
+                                               "H1u - A": "+0.067 [-0.271, +0.404] | no evidence"}),
+    ("intervals_old_vs_new/four_rooms_default_1000", {"H2u": "0.830 [0.679, 0.981]",
+                                                      "H2u - A": "+0.427 [+0.302, +0.552] | ahead"}),
+    ("four_rooms_default", {"A": "0.260 [0.097, 0.423]", "H1u - A": "+0.170 [-0.033, +0.373] | no evidence",
+                            "H1s - A": "+0.150 [+0.019, +0.281] | ahead"}),
+    ("four_rooms_dqn64", {"A": "0.350 [0.284, 0.416]", "H1u - A": "+0.090 [-0.211, +0.391] | no evidence"}),
+]
+NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
+README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
+                    "+0.427 [+0.302, +0.552]"}
+
+
+@pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES)
 def test_kept_results_back_the_readme(tmp_path, folder, expected):
-    """The README's re-derived GridWorld figures, recomputed from the results kept under results/."""
+    """The GridWorld figures quoted in the docs and README, recomputed from the results kept under results/."""
     import gzip
     import os
 
@@ -227,3 +232,22 @@ def test_kept_results_back_the_readme(tmp_path, folder, expected):
     for name, figure in expected.items():
         row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | 3 |"
         assert any(line.startswith(row) and figure in line for line in text.splitlines()), (name, figure)
+
+
+def test_kept_figures_are_quoted():
+    """Each recomputed figure is the one its page quotes (signs aside: pages write [0.072, 0.288] for [+0.072, ...])."""
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+    def read(*parts):
+        with open(os.path.join(root, *parts)) as f:
+            return f.read().replace("+", "")
+
+    page, readme = read("docs", "experiments", "gridworld.md"), read("README.md")
+    figures = {figure.split(" |")[0] for _, expected in KEPT_GRIDWORLD_FIGURES for figure in expected.values()}
+    assert README_HEADLINES <= figures
+    for figure in sorted(figures - NOT_QUOTED):
+        assert figure.replace("+", "") in page, f"{figure} is not on docs/experiments/gridworld.md"
+    for figure in sorted(README_HEADLINES):
+        assert figure.replace("+", "") in readme, f"{figure} is not in the README's results table"

@@ -397,6 +397,15 @@ def test_options_module_outputs_checked():
         env.rollout(2)
 
 
+def test_options_for_another_observation_size_raise_at_the_door():
+    from torchrl_options.modules import OptionsMLP
+
+    options = OptionsMLP(L + 3, 2, K, num_cells=[4], in_keys=["observation"])  # built for a longer corridor
+    env = Corridor(L).append_transform(OptionExecutor(options, num_options=K))
+    with pytest.raises(ValueError, match=rf"shapes \{{'observation': \({L},\)\}}.*built for this env's observation size"):
+        env.rollout(3, break_when_any_done=False)
+
+
 def test_action_out_of_range():
     env = corridor_with_executor()
     td = env.reset()

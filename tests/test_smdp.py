@@ -360,18 +360,3 @@ def test_replay_buffer_transform_bad_use():
     env = Corridor(8, max_steps=10).append_transform(SMDPTransform(0.9))
     with pytest.raises(ValueError, match="replay-buffer transform"):
         env.rollout(3)
-
-
-def test_readme_replay_buffer_example(tmp_path):
-    """The README's "Options in a replay buffer" example runs as written (options ran: some k > 1)."""
-    import pathlib
-
-    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = readme.split("### Options in a replay buffer", 1)[1]
-    code = section.split("```python\n", 1)[1].split("```", 1)[0]
-    namespace = {}
-    with torch.random.fork_rng():
-        exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102 - our own README
-    rb = namespace["rb"]
-    assert len(rb) > 0 and (rb[:]["steps_to_next_obs"] > 1).any()
-    assert torch.isfinite(namespace["loss_value"])

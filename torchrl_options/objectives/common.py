@@ -371,7 +371,9 @@ class DDOLossBase(LossModule):
     Subclasses implement :meth:`log_probabilities` (the E-step inputs, checked), :meth:`_posterior` and
     :meth:`_top_marginals`.
 
-    Keyword Args (of every subclass):
+    Every subclass takes these keyword arguments.
+
+    Keyword Args:
         action_space (str): ``"auto"`` or one of the subclass's action spaces.
         terminal_at_end (bool): read ``tensor_keys.terminal`` at each row's last valid step and, where set,
             terminate the active option(s) at ``s_T``. Defaults to ``True``; a missing key means ``False``.

@@ -419,6 +419,22 @@ class OptionExecutor(Transform):
         return (actions if actions.dtype is consts.dtype else actions.to(consts.dtype)), term
 
     def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        try:
+            return self._call_options_unchecked(tensordict)
+        except RuntimeError as err:  # e.g. options built for another observation size: say so at the door
+            keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
+            shapes = {
+                key: tuple(tensordict.get(key).shape)
+                for key in keys
+                if isinstance(tensordict.get(key, None), torch.Tensor)
+            }
+            raise ValueError(
+                f"OptionExecutor: the options module failed on the env's observations (shapes {shapes}, batch "
+                f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
+                f"torch said: {err}"
+            ) from err
+
+    def _call_options_unchecked(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         keys = self._options_in_keys
         if keys is not None:
             inputs = [tensordict.get(key, None) for key in keys]
