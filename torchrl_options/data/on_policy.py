@@ -110,6 +110,7 @@ class OnPolicyDecisions:
         end_of_batch_key: NestedKey = ("next", "end_of_batch"),
     ):
         self.every_step = decision_key is None
+        self._decision_key = None if decision_key is None else unravel_key(decision_key)
         self.smdp = SMDPTransitions(
             gamma, decision_key=_EVERY_STEP if decision_key is None else decision_key, reward_key=reward_key, done_key=done_key, steps_key=steps_key
         )
@@ -122,11 +123,6 @@ class OnPolicyDecisions:
     def gamma(self) -> float:
         """The discount per primitive step."""
         return self.smdp.gamma
-
-    @property
-    def decision_key(self) -> NestedKey | None:
-        """The executor's decision record read from the step-level data (``None``: every step)."""
-        return None if self.every_step else self.smdp.keys.decision
 
     @property
     def num_pending(self) -> int:
@@ -144,9 +140,9 @@ class OnPolicyDecisions:
             raise TypeError(f"OnPolicyDecisions expects a TensorDict of step-level data, got {type(data).__name__}.")
         if data.ndim == 0:
             raise ValueError("OnPolicyDecisions expects data with a time dimension (shape [T] or [*B, T]).")
-        if not self.every_step and data.get(self.decision_key, None) is None:
+        if not self.every_step and data.get(self._decision_key, None) is None:
             raise ValueError(
-                f"OnPolicyDecisions: the data has no {self.decision_key!r} entry (decision_key). Collect with an "
+                f"OnPolicyDecisions: the data has no {self._decision_key!r} entry (decision_key). Collect with an "
                 "OptionExecutor in the env, or pass the decision key of its level (e.g. ('next', "
                 "'option_decision_2') for a level-2 executor)."
             )
@@ -176,4 +172,4 @@ class OnPolicyDecisions:
         return out
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(gamma={self.gamma}, decision_key={self.decision_key!r})"
+        return f"{type(self).__name__}(gamma={self.gamma}, decision_key={self._decision_key!r})"
