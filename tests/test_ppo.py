@@ -312,3 +312,38 @@ def test_bad_config_named(kwargs, match):
 def test_options_mode_needs_options():
     with pytest.raises(ValueError, match="options"):
         OptionsPPO(lambda: Corridor(8), OptionsPPOConfig(mode="both"))
+
+
+def test_the_documented_lines_in_a_plain_torchrl_ppo_loop():
+    """docs/ppo.md: a TorchRL PPO loop (Collector, ProbabilisticActor, ValueOperator, ClipPPOLoss, GAE) gains options
+    with the executor, OnPolicyDecisions and the guard; the unchanged loop on step-level batches is refused."""
+    from torchrl.collectors import Collector
+
+    torch.manual_seed(0)
+    env = Corridor(8, max_steps=20, batch_size=[4]).append_transform(
+        OptionExecutor(checkpoint_options(8, every=3), num_options=2)
+    )
+    n = env.full_action_spec_unbatched["action"].n
+    assert n == 4
+    actor = _tabular_actor(8, n)
+    critic = ValueOperator(nn.Linear(8, 1), in_keys=["observation"])
+    loss_module = guard_decision_level(ClipPPOLoss(actor, critic, entropy_coeff=0.01))
+    loss_module.make_value_estimator(ValueEstimators.GAE, gamma=0.9, lmbda=0.95)
+    optim = torch.optim.Adam(loss_module.parameters(), lr=1e-2)
+    decisions = OnPolicyDecisions(0.9)
+    collector = Collector(env, actor, frames_per_batch=64, total_frames=192, auto_register_policy_transforms=False)
+    for i, batch in enumerate(collector):
+        if i == 0:
+            with pytest.raises(StepLevelDataError):
+                loss_module.value_estimator(batch.clone())
+        data = decisions(batch)
+        with torch.no_grad():
+            loss_module.value_estimator(data)
+        for minibatch in data[torch.randperm(data.shape[0])].split(16):
+            out = loss_module(minibatch)
+            loss = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            assert loss.isfinite()
+    collector.shutdown()
