@@ -4,7 +4,7 @@ PPO learns from decision-level batches (one entry per decision, SMDP advantages 
 ``ClipPPOLoss``; docs/ppo.md). Writes results.csv, summary.md (with 95% intervals over seeds and every condition
 against A, paired by seed), curves.png and pictures/ to ``out_dir`` and prints the summary table.
 
-    python recipes/four_rooms_ppo.py                                 # 15 seeds
+    python recipes/four_rooms_ppo.py                                 # 15 seeds x 1000 episodes
     python recipes/four_rooms_ppo.py backend=local num_workers=2     # the same on 2 processes
     python recipes/four_rooms_ppo.py scale=tiny                      # seconds
 """
