@@ -5,12 +5,12 @@ Options", arXiv:1703.08294, 2017.
 
 The folders: ``inference`` (the E-step and decoding), ``modules`` (options and meta-control as TensorDict
 modules), ``objectives`` (``DDOLoss``), ``discovery`` (one-call discovery, initialisation, save/load),
-``hierarchy`` (multi-level discovery), ``transforms`` (``OptionExecutor``), ``data`` (SMDP transitions),
-``agents`` (DQN over actions and options), ``envs`` (GridWorld, Atari RAM), ``segmentation``, ``experiments``
+``hierarchy`` (multi-level discovery), ``transforms`` (``OptionExecutor``), ``data`` (SMDP transitions and
+decision-level batches for PPO), ``agents`` (DQN and PPO over actions and options), ``envs`` (GridWorld, Atari RAM), ``segmentation``, ``experiments``
 (what the recipes share) and ``testing`` (planted structures).
 """
-from torchrl_options.agents import OptionsDQN, OptionsDQNConfig
-from torchrl_options.data import smdp_transitions, SMDPTransform, SMDPTransitions
+from torchrl_options.agents import OptionsDQN, OptionsDQNConfig, OptionsPPO, OptionsPPOConfig
+from torchrl_options.data import OnPolicyDecisions, smdp_transitions, SMDPTransform, SMDPTransitions
 from torchrl_options.discovery import (
     as_trajectory_batch,
     discover_options,
@@ -35,7 +35,7 @@ from torchrl_options.inference import (
     ViterbiOutput,
 )
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
-from torchrl_options.objectives import DDOLoss, option_log_probs
+from torchrl_options.objectives import DDOLoss, guard_decision_level, option_log_probs
 from torchrl_options.segmentation import boundary_metrics, segment, Segmentation
 from torchrl_options.transforms import DecisionCounter, OptionExecutor
 
@@ -54,25 +54,29 @@ __all__ = [
     "GaussianOptionsMLP",
     "generate_demonstrations",
     "GridWorldEnv",
-    "HierarchicalDDOLoss",
+    "guard_decision_level",
     "hierarchical_forward_backward",
+    "HierarchicalDDOLoss",
     "load_hierarchy",
     "load_options",
     "MetaControlMLP",
     "most_likely_options",
+    "OnPolicyDecisions",
     "option_log_probs",
     "OptionExecutor",
     "OptionHierarchy",
     "OptionsDQN",
     "OptionsDQNConfig",
     "OptionsMLP",
+    "OptionsPPO",
+    "OptionsPPOConfig",
     "save_hierarchy",
     "save_options",
     "segment",
     "Segmentation",
+    "smdp_transitions",
     "SMDPTransform",
     "SMDPTransitions",
-    "smdp_transitions",
     "UniformMetaControl",
     "ValueIterationSupervisor",
     "viterbi",

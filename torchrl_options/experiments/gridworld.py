@@ -239,10 +239,20 @@ def _dqn_config(cfg: Mapping[str, Any], mode: str, seed: int) -> OptionsDQNConfi
     return OptionsDQNConfig(mode=mode, num_envs=1, seed=seed, **dqn)
 
 
+def _ppo_config(cfg: Mapping[str, Any], mode: str, seed: int):
+    from torchrl_options.agents.ppo import OptionsPPOConfig
+
+    ppo = dict(cfg["ppo"])
+    if "hidden_sizes" in ppo:
+        ppo["hidden_sizes"] = tuple(ppo["hidden_sizes"])
+    return OptionsPPOConfig(mode=mode, num_envs=1, seed=seed, **ppo)
+
+
 def make_agent(
     cfg: Mapping[str, Any], mode: str, seed: int, options=None, num_options: int | None = None
 ) -> OptionsDQN:
-    """An :class:`OptionsDQN` on ``cfg["num_envs"]`` batched grids (a ``GridWorldEnv(batch_size=[N])``).
+    """An :class:`OptionsDQN` on ``cfg["num_envs"]`` batched grids (a ``GridWorldEnv(batch_size=[N])``), or an
+    :class:`~torchrl_options.agents.OptionsPPO` (settings from the ``ppo`` section) with ``cfg["algorithm"] == "ppo"``.
 
     ``options`` may be an :class:`~torchrl_options.OptionHierarchy`: its lower levels then run in nested
     executors inside the env and the DQN chooses among primitives and the options of every level.
@@ -261,6 +271,10 @@ def make_agent(
         return env
 
     torch.manual_seed(seed)  # the recipe seeds the global generator (network init, exploration); the agent does not
+    if cfg.get("algorithm", "dqn") == "ppo":
+        from torchrl_options.agents.ppo import OptionsPPO
+
+        return OptionsPPO(factory, _ppo_config(cfg, mode, seed), options=options, num_options=num_options)
     return OptionsDQN(factory, _dqn_config(cfg, mode, seed), options=options, num_options=num_options)
 
 
@@ -394,7 +408,8 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     """Runs one (setting, condition, seed) cell and returns its per-episode returns (resumable).
 
     ``cfg`` keys: ``out_dir``, ``env`` (GridWorldEnv arguments), ``num_envs``, ``demos`` (``num``, ``length``,
-    ``env`` overrides), ``discovery`` (DDO settings), ``dqn`` (:class:`OptionsDQNConfig` fields; ``max_decisions``
+    ``env`` overrides), ``discovery`` (DDO settings), ``algorithm`` (``dqn``, the default, or ``ppo`` with a ``ppo``
+    section of :class:`~torchrl_options.agents.OptionsPPOConfig` fields), ``dqn`` (:class:`OptionsDQNConfig` fields; ``max_decisions``
     limits episodes in decisions, with ``env.max_steps`` as a larger cap on primitive steps), ``episodes``,
     ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
@@ -409,7 +424,7 @@ def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
     setting = cfg["settings"][cell.setting]
     condition = cfg["conditions"][cell.condition]
     mode = condition["mode"]
-    ckpt = cell_dir(cfg["out_dir"], cell.name) / "dqn.pt"
+    ckpt = cell_dir(cfg["out_dir"], cell.name) / ("ppo.pt" if cfg.get("algorithm", "dqn") == "ppo" else "dqn.pt")
     options = cell_options(cfg, cell, progress=progress)
     if mode == "actions" and setting["source"] == "greedy":
         # the baseline is not reset: it continues the pre-trained agent

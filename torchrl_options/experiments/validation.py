@@ -96,8 +96,15 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
     settings, conditions = _section(cfg, "settings"), _section(cfg, "conditions")
     _names(cfg.get("settings_to_run"), "settings_to_run", settings, "settings")
     _names(cfg.get("conditions_to_run"), "conditions_to_run", conditions, "conditions")
+    algorithm = cfg.get("algorithm", "dqn")
+    _choice(algorithm, "algorithm", ("dqn", "ppo"))
     for name in cfg["settings_to_run"]:
         setting = _section(settings, name)
+        if algorithm == "ppo" and isinstance(setting, Mapping) and setting.get("source") == "greedy":
+            raise SettingError(
+                f"settings_to_run: {name!r} pre-trains a DQN agent (source: greedy); algorithm=ppo runs supervised "
+                "settings only."
+            )
         _choice(setting.get("source"), f"settings.{name}.source", ("supervisor", "greedy"))
         if setting["source"] == "greedy":
             _int(setting, "pretrain_episodes", f"settings.{name}.pretrain_episodes", 1)
@@ -140,7 +147,10 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
     for key in ("num_starts", "max_length"):
         _int(pictures, key, f"pictures.{key}", 1, allow_none=True)
     _check_env(cfg)
-    _check_dqn(cfg)
+    if cfg.get("algorithm", "dqn") == "ppo":
+        _check_ppo(cfg)
+    else:
+        _check_dqn(cfg)
 
 
 def _check_env(cfg: Mapping[str, Any]) -> None:
@@ -172,6 +182,22 @@ def _check_dqn(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"dqn.{err}") from None
     except ValueError as err:
         raise SettingError(f"dqn.{err}") from None
+
+
+def _check_ppo(cfg: Mapping[str, Any]) -> None:
+    from torchrl_options.agents.ppo import OptionsPPOConfig
+
+    ppo = dict(_section(cfg, "ppo"))
+    if isinstance(ppo.get("hidden_sizes"), (list, tuple)):
+        ppo["hidden_sizes"] = tuple(ppo["hidden_sizes"])
+    try:
+        OptionsPPOConfig(**ppo)
+    except TypeError as err:
+        if "unexpected keyword" in str(err):
+            raise SettingError(f"ppo: unknown setting ({str(err).split('argument')[-1].strip()}).") from None
+        raise SettingError(f"ppo.{err}") from None
+    except ValueError as err:
+        raise SettingError(f"ppo.{err}") from None
 
 
 def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> None:

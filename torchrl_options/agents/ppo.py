@@ -1,0 +1,438 @@
+"""PPO over primitive actions, options, or both: policy gradients at the level of decisions.
+
+Wires an env factory, an :class:`~torchrl_options.transforms.OptionExecutor` (on top of the executors an env may
+already have: a hierarchy), a categorical ``ProbabilisticActor`` over the augmented action space ``A + K`` (``K``
+with ``mode="options"``), a ``ValueOperator``, a ``Collector``, the decision-level batches of
+:class:`~torchrl_options.data.OnPolicyDecisions`, TorchRL's :class:`~torchrl.objectives.value.GAE` (which
+discounts a decision of ``k`` steps by ``gamma ** k``) and TorchRL's :class:`~torchrl.objectives.ClipPPOLoss`,
+guarded against step-level data by :func:`~torchrl_options.objectives.guard_decision_level`. It is the PPO
+counterpart of :class:`~torchrl_options.agents.OptionsDQN` (same env wiring, log, checkpoints and ``train``
+callback), so the GridWorld recipes run either.
+
+In a user's own TorchRL PPO script the same composition is three additions (see ``docs/ppo.md``): the
+executor appended to the env, ``decisions = OnPolicyDecisions(gamma)(batch)`` before the advantage module, and
+``guard_decision_level(loss_module)``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import (
+    EnvBase,
+    ExplorationType,
+    ParallelEnv,
+    RewardSum,
+    SerialEnv,
+    set_exploration_type,
+    StepCounter,
+)
+from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
+
+from torchrl_options.agents.dqn import _count_executors, _generators, _seed_executors, TrainingLog
+from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
+from torchrl_options.data.on_policy import OnPolicyDecisions
+from torchrl_options.objectives.decision_guard import guard_decision_level
+from torchrl_options.transforms.option_executor import OptionExecutor
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["OptionsPPOConfig", "OptionsPPO"]
+
+Mode = Literal["actions", "options", "both"]
+
+
+@dataclass
+class OptionsPPOConfig:
+    """Hyper-parameters of :class:`OptionsPPO`. Frames are primitive env steps summed over the batched envs.
+
+    Attributes:
+        mode: ``"actions"`` (plain PPO), ``"options"`` (the policy chooses among options only: the executor's
+            ``primitive_actions=False``) or ``"both"`` (``Categorical(A + K)``).
+        num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
+            ``parallel=True``) with the executor outside.
+        total_frames: training budget of :meth:`OptionsPPO.train`.
+        frames_per_batch: collector batch size (one PPO update per batch).
+        num_epochs: passes over each batch's decisions.
+        minibatch_size: decisions per gradient step (``None``: the whole batch).
+        lr: Adam learning rate.
+        gamma: discount per primitive step (a decision of ``k`` steps is discounted by ``gamma ** k``).
+        lmbda: GAE's lambda, per decision.
+        clip_epsilon, entropy_coeff, critic_coeff, loss_critic_type, normalize_advantage: ``ClipPPOLoss``'s.
+        hidden_sizes: hidden layers of the default policy and value MLPs.
+        max_grad_norm: gradient clipping (``None`` to disable).
+        greedy_options: options act greedily instead of sampling their action.
+        observation_key: the input of the default networks.
+        seed: seeds the envs, the collector and the option executors. Network initialisation and the policy's
+            sampling draw from torch's global generator, as TorchRL's modules do: call ``torch.manual_seed`` before
+            building the agent for a reproducible run (the recipes do).
+        device: device of the networks (the envs stay on their own device).
+    """
+
+    mode: Mode = "both"
+    num_envs: int = 1
+    parallel: bool = False
+    total_frames: int = 10_000
+    frames_per_batch: int = 256
+    num_epochs: int = 4
+    minibatch_size: int | None = 64
+    lr: float = 3e-4
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 0.5
+    loss_critic_type: str = "smooth_l1"
+    normalize_advantage: bool = True
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    max_grad_norm: float | None = 0.5
+    greedy_options: bool = False
+    observation_key: NestedKey = "observation"
+    seed: int = 0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
+        from torchrl_options.discovery._validation import check_int
+
+        choices = {"mode": ("actions", "options", "both"), "loss_critic_type": ("l1", "l2", "smooth_l1")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}.")
+        for name, minimum in (("num_envs", 1), ("total_frames", 0), ("frames_per_batch", 1), ("num_epochs", 1), ("seed", 0)):
+            check_int(getattr(self, name), name, minimum=minimum)
+        check_int(self.minibatch_size, "minibatch_size", minimum=1, allow_none=True)
+        for name, lo, hi, lo_open in (("lr", 0, math.inf, True), ("gamma", 0, 1, False), ("lmbda", 0, 1, False),
+                                      ("clip_epsilon", 0, math.inf, True), ("entropy_coeff", 0, math.inf, False),
+                                      ("critic_coeff", 0, math.inf, False)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__}).")
+            if math.isnan(value) or not (lo < value if lo_open else lo <= value) or not value <= hi or value == math.inf:
+                raise ValueError(f"{name} must be in {'(' if lo_open else '['}{lo}, {hi}], got {value}.")
+        for name in ("parallel", "normalize_advantage", "greedy_options"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}.")
+        if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
+            raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
+        sizes = self.hidden_sizes
+        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
+            isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+        ):
+            raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
+
+
+class OptionsPPO:
+    """PPO over actions, options or both, on any env with a ``Categorical`` action (see the module docstring).
+
+    Each collector batch becomes one entry per decision (:class:`~torchrl_options.data.OnPolicyDecisions`; a
+    decision still running at the end of a batch is completed with the next one), TorchRL's GAE computes the SMDP
+    advantages over them (``gamma ** k`` per decision), and ``config.num_epochs`` passes of ``ClipPPOLoss`` over
+    minibatches of decisions update the policy and the value network.
+
+    Args:
+        env_factory (Callable[[], EnvBase]): makes one env with a ``Categorical(A)`` action and a flat
+            ``config.observation_key`` observation (or pass the networks). It may already run lower levels of
+            options (executors of a hierarchy): the agent's executor then goes one level up.
+        config (OptionsPPOConfig): hyper-parameters.
+
+    Keyword Args:
+        options (TensorDictModuleBase, optional): writes ``option_logits`` ``[..., K, A]`` and
+            ``termination_logits`` ``[..., K]``; required unless ``config.mode == "actions"``.
+        num_options (int, optional): ``K``; required with ``options``.
+        policy_network (nn.Module, optional): maps the observation to one logit per augmented action. Defaults
+            to an MLP with ``config.hidden_sizes``.
+        value_network (nn.Module, optional): maps the observation to one value. Defaults to an MLP.
+
+    Attributes:
+        env, actor (the ``ProbabilisticActor``; ``policy`` is the same), critic, loss_module (``ClipPPOLoss``),
+        decisions (:class:`~torchrl_options.data.OnPolicyDecisions`), optimizer, frames, log
+        (:class:`~torchrl_options.agents.TrainingLog`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.envs import GymEnv
+        >>> from torchrl_options.agents import OptionsPPO, OptionsPPOConfig
+        >>> class Push(torch.nn.Module):  # two options: push left / push right, 4 steps on average
+        ...     def forward(self, obs):
+        ...         logits = torch.tensor([[5.0, -5.0], [-5.0, 5.0]]).expand(*obs.shape[:-1], 2, 2)
+        ...         return logits, torch.full((*obs.shape[:-1], 2), -1.1)
+        >>> options = TensorDictModule(Push(), ["observation"], ["option_logits", "termination_logits"])
+        >>> config = OptionsPPOConfig(mode="both", num_envs=2, total_frames=256, frames_per_batch=128)
+        >>> agent = OptionsPPO(lambda: GymEnv("CartPole-v1", categorical_action_encoding=True), config,
+        ...                    options=options, num_options=2)
+        >>> log = agent.train()
+        >>> agent.frames, len(log.losses) > 0
+        (256, True)
+    """
+
+    def __init__(
+        self,
+        env_factory: Callable[[], EnvBase],
+        config: OptionsPPOConfig | None = None,
+        *,
+        options: TensorDictModuleBase | None = None,
+        num_options: int | None = None,
+        policy_network: nn.Module | None = None,
+        value_network: nn.Module | None = None,
+    ):
+        self.config = config = config or OptionsPPOConfig()
+        if not isinstance(config, OptionsPPOConfig):
+            raise TypeError(f"config must be an OptionsPPOConfig, got {type(config).__name__}.")
+        if config.mode != "actions" and (options is None or num_options is None):
+            raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+        if not callable(env_factory):
+            raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
+        if num_options is not None:
+            from torchrl_options.discovery._validation import check_int
+
+            check_int(num_options, "num_options", minimum=1)
+        if options is not None and not isinstance(options, TensorDictModuleBase):
+            raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
+        self.env_factory = env_factory
+        self.options = options
+        self.num_options = num_options
+        self.device = torch.device(config.device)
+        self._executor_level = 0
+        self.env = self.make_env()
+
+        spec = self.env.full_action_spec_unbatched["action"]
+        obs_dim = self.env.observation_spec[config.observation_key].shape[-1]
+        if policy_network is None:
+            policy_network = MLP(in_features=obs_dim, out_features=spec.n, num_cells=list(config.hidden_sizes), activation_class=nn.Tanh)
+        if value_network is None:
+            value_network = MLP(in_features=obs_dim, out_features=1, num_cells=list(config.hidden_sizes), activation_class=nn.Tanh)
+        self.actor = ProbabilisticActor(
+            TensorDictModule(policy_network, in_keys=[config.observation_key], out_keys=["logits"]),
+            in_keys=["logits"],
+            spec=spec,
+            distribution_class=torch.distributions.Categorical,
+            return_log_prob=True,
+            default_interaction_type=ExplorationType.RANDOM,
+        ).to(self.device)
+        self.policy = self.actor
+        self.critic = ValueOperator(value_network, in_keys=[config.observation_key]).to(self.device)
+        self.loss_module = ClipPPOLoss(
+            self.actor,
+            self.critic,
+            clip_epsilon=config.clip_epsilon,
+            entropy_bonus=config.entropy_coeff > 0,
+            entropy_coeff=config.entropy_coeff,
+            critic_coeff=config.critic_coeff,
+            loss_critic_type=config.loss_critic_type,
+            normalize_advantage=config.normalize_advantage,
+        )
+        guard_decision_level(self.loss_module)
+        # GAE over decisions: TorchRL's estimator discounts each by gamma ** steps_to_next_obs
+        self.loss_module.make_value_estimator(ValueEstimators.GAE, gamma=config.gamma, lmbda=config.lmbda)
+        self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=config.lr)
+        self.decisions = OnPolicyDecisions(config.gamma, decision_key=self.decision_key)
+        self.frames = 0
+        self.updates = 0
+        self.log = TrainingLog()
+
+    @property
+    def decision_key(self) -> NestedKey | None:
+        """The decision record of the agent's executor (the top level); ``None`` without executor."""
+        level = self._executor_level
+        if level == 0:
+            return None
+        return ("next", "option_decision" if level == 1 else f"option_decision_{level}")
+
+    # ------------------------------------------------------------------ env
+    def make_env(self) -> EnvBase:
+        """The training env: batched envs, then the executor (outside the batch, one level above those the env
+        already has), ``RewardSum``, ``StepCounter``."""
+        config = self.config
+        if config.num_envs == 1:
+            env = self.env_factory()
+        else:
+            env = (ParallelEnv if config.parallel else SerialEnv)(config.num_envs, self.env_factory)
+        if config.mode != "actions":
+            self._executor_level = 1 + _count_executors(env)
+            env = env.append_transform(
+                OptionExecutor(
+                    self.options,
+                    num_options=self.num_options,
+                    primitive_actions=config.mode == "both",
+                    greedy=config.greedy_options,
+                    level=self._executor_level,
+                )
+            )
+            _seed_executors(env, config.seed)
+        if "episode_reward" not in env.observation_spec.keys():
+            env = env.append_transform(RewardSum())
+        if "step_count" not in env.observation_spec.keys():
+            env = env.append_transform(StepCounter())
+        return env
+
+    # ------------------------------------------------------------- training
+    def train(
+        self, total_frames: int | None = None, callback: Callable[[OptionsPPO, TensorDictBase], Any] | None = None
+    ) -> TrainingLog:
+        """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
+
+        ``callback(agent, batch)`` is called after every collector batch; when it returns ``True`` training stops
+        there. Can be called again to continue training (the collector then restarts the episodes), also after
+        :meth:`load_state_dict`.
+        """
+        config = self.config
+        if total_frames is None:
+            total_frames = config.total_frames - self.frames
+        total_frames = math.ceil(total_frames / config.frames_per_batch) * config.frames_per_batch
+        if total_frames <= 0:
+            return self.log
+        self.env.set_seed(config.seed + self.frames)
+        collector = Collector(
+            self.env,
+            self.actor,
+            frames_per_batch=config.frames_per_batch,
+            total_frames=total_frames,
+            storing_device=self.device,
+            policy_device=self.device,
+            env_device=self.env.device,
+            auto_register_policy_transforms=False,
+        )
+        collector.set_seed(config.seed + self.frames)
+        _seed_executors(self.env, config.seed + self.frames)
+        self.decisions.reset()  # the collector starts new episodes
+        try:
+            for batch in collector:
+                self._record_episodes(batch)
+                decisions = self.decisions(batch)
+                self.frames += batch.numel()
+                if decisions.shape[0]:
+                    self.update(decisions)
+                collector.update_policy_weights_()
+                if callback is not None and callback(self, batch):
+                    break
+        finally:
+            collector.shutdown(close_env=False)
+        return self.log
+
+    def update(self, decisions: TensorDictBase) -> None:
+        """One PPO update on a decision-level batch (from :attr:`decisions`): GAE over the decisions, then
+        ``num_epochs`` passes of ``ClipPPOLoss`` over shuffled minibatches."""
+        config = self.config
+        decisions = decisions.to(self.device)
+        with torch.no_grad():
+            self.loss_module.value_estimator(decisions)
+        n = decisions.shape[0]
+        size = min(config.minibatch_size or n, n)
+        for _ in range(config.num_epochs):
+            order = torch.randperm(n, device=self.device)
+            for start in range(0, n, size):
+                out = self.loss_module(decisions[order[start : start + size]])
+                loss = out["loss_objective"] + out["loss_critic"]
+                if "loss_entropy" in out.keys():
+                    loss = loss + out["loss_entropy"]
+                self.optimizer.zero_grad()
+                loss.backward()
+                if config.max_grad_norm is not None:
+                    torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), config.max_grad_norm)
+                self.optimizer.step()
+                self.updates += 1
+                self.log.losses.append(loss.item())
+
+    def _record_episodes(self, batch: TensorDictBase) -> None:
+        done = batch.get(("next", "done")).squeeze(-1)
+        if not done.any():
+            return
+        n_envs = batch.shape[:-1].numel()
+        frame = (self.frames + (torch.arange(batch.shape[-1]) + 1) * n_envs).expand(batch.shape).to(done.device)
+        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
+        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
+        ends = frame[done]
+        order = ends.argsort(stable=True)
+        self.log.episode_returns += returns[order].tolist()
+        self.log.episode_lengths += lengths[order].tolist()
+        self.log.episode_end_frames += ends[order].tolist()
+        logger.info("frames %d: %d episodes, mean return %.3f", self.frames + batch.numel(), len(returns), returns.float().mean().item())
+
+    # ----------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, num_episodes: int = 10, max_steps: int = 1000) -> list[float]:
+        """Returns of the first ``num_episodes`` episodes of the greedy policy (the mode of its distribution;
+        options act as configured), on one env from ``env_factory`` run for at most ``max_steps`` steps."""
+        saved, self.config.num_envs = self.config.num_envs, 1
+        try:
+            env = self.make_env()
+        finally:
+            self.config.num_envs = saved
+        env.set_seed(self.config.seed + 10_000)
+        _seed_executors(env, self.config.seed + 10_000)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
+        env.close()
+        done = data.get(("next", "done")).squeeze(-1)
+        returns = data.get(("next", "episode_reward")).squeeze(-1)
+        if data.ndim > 1:
+            done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
+        return returns[done][:num_episodes].tolist()
+
+    # ---------------------------------------------------------- checkpoints
+    def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:
+        """Networks, optimizer, counters, log and every random state the training draws from, as plain data (loads
+        with ``weights_only=True``). ``include_buffer`` is accepted for the recipes' sake: PPO keeps no buffer."""
+        return {
+            "loss_module": self.loss_module.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "frames": self.frames,
+            "updates": self.updates,
+            "log": asdict(self.log),
+            "config": asdict(self.config),
+            "rng": rng_state(),
+            "generators": {name: g.get_state() for name, g in _generators(self.env).items()},
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores :meth:`state_dict`.
+
+        Raises:
+            ValueError: ``state`` is not an OptionsPPO checkpoint, or was saved by an agent over another action
+                space or network.
+        """
+        if not isinstance(state, dict):
+            raise TypeError(f"load_state_dict: expected a dict from OptionsPPO.state_dict, got {type(state).__name__}.")
+        missing = [k for k in ("loss_module", "optimizer", "frames", "updates", "log") if k not in state]
+        if missing:
+            raise ValueError(f"load_state_dict: not an OptionsPPO checkpoint, missing {missing}.")
+        saved_mode = state.get("config", {}).get("mode", self.config.mode)
+        if saved_mode != self.config.mode:
+            raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
+        try:
+            self.loss_module.load_state_dict(state["loss_module"])
+        except (RuntimeError, ValueError, KeyError) as err:
+            raise ValueError(
+                "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
+                f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."
+            ) from None
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.frames = int(state["frames"])
+        self.updates = int(state["updates"])
+        self.log = TrainingLog(**{k: list(v) for k, v in state["log"].items()})
+        if "rng" in state:
+            set_rng_state(state["rng"])
+            generators = _generators(self.env)
+            for name, g_state in state.get("generators", {}).items():
+                if name in generators:
+                    generators[name].set_state(g_state)
+
+    def save(self, path) -> None:
+        """Writes :meth:`state_dict` to ``path`` (plain data, atomically)."""
+        save_file(self.state_dict(), path)
+
+    def load(self, path) -> None:
+        """Restores a checkpoint written by :meth:`save`, without running code from the file."""
+        self.load_state_dict(load_file(path, what="OptionsPPO checkpoint", map_location=self.device))
