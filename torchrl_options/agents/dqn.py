@@ -171,6 +171,54 @@ class TrainingLog:
     # return, episodes evaluated]
     evaluations: list[list[float]] = field(default_factory=list)
 
+    def record_episodes(self, batch: TensorDictBase, frames: int) -> torch.Tensor | None:
+        """Appends the episodes that end in a collector ``batch`` ``[*envs, T]`` (needs ``RewardSum`` and
+        ``StepCounter``), in the order they ended; ``frames`` is the count before the batch. Returns their returns,
+        or ``None`` when none ended."""
+        done = batch.get(("next", "done")).squeeze(-1)
+        if not done.any():
+            return None
+        # frame index (1-based) of every step, counting all envs of a time step together
+        n_envs = batch.shape[:-1].numel()
+        frame = (frames + (torch.arange(batch.shape[-1]) + 1) * n_envs).expand(batch.shape).to(done.device)
+        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
+        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
+        ends = frame[done]
+        order = ends.argsort(stable=True)
+        self.episode_returns += returns[order].tolist()
+        self.episode_lengths += lengths[order].tolist()
+        self.episode_end_frames += ends[order].tolist()
+        return returns
+
+
+def _batched_env(env_factory: Callable[[], EnvBase], num_envs: int, parallel: bool) -> EnvBase:
+    if num_envs == 1:
+        return env_factory()
+    return (ParallelEnv if parallel else SerialEnv)(num_envs, env_factory)
+
+
+def _with_reward_sum_and_step_count(env: EnvBase) -> EnvBase:
+    if "episode_reward" not in env.observation_spec.keys():
+        env = env.append_transform(RewardSum())
+    if "step_count" not in env.observation_spec.keys():
+        env = env.append_transform(StepCounter())
+    return env
+
+
+def _greedy_returns(env: EnvBase, actor: nn.Module, num_episodes: int, max_steps: int, seed: int) -> list[float]:
+    """Returns of the first ``num_episodes`` episodes of ``actor``'s deterministic policy on ``env`` (seeded with
+    ``seed``, its executors too), run for ``max_steps`` steps; closes ``env``."""
+    env.set_seed(seed)
+    _seed_executors(env, seed)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        data = env.rollout(max_steps, actor, auto_cast_to_device=True, break_when_any_done=False)
+    env.close()
+    done = data.get(("next", "done")).squeeze(-1)
+    returns = data.get(("next", "episode_reward")).squeeze(-1)
+    if data.ndim > 1:  # [*envs, T] -> [T, *envs]: episodes in the order they ended
+        done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
+    return returns[done][:num_episodes].tolist()
+
 
 def _seed_executors(env: EnvBase, seed: int) -> None:
     """Seeds the private generators of the executors of ``env`` (one stream per level), as ``collector.set_seed``
@@ -343,11 +391,7 @@ class OptionsDQN:
         """The training env: batched envs, then the executor (outside the batch), a ``DecisionCounter`` (with
         ``config.max_decisions``), ``RewardSum``, ``StepCounter``."""
         config = self.config
-        if config.num_envs == 1:
-            env = self.env_factory()
-        else:
-            batched = ParallelEnv if config.parallel else SerialEnv
-            env = batched(config.num_envs, self.env_factory)
+        env = _batched_env(self.env_factory, config.num_envs, config.parallel)
         if config.mode != "actions":
             # over an env that already runs options (a lower level of a hierarchy), these options are one level up
             self._executor_level = 1 + _count_executors(env)
@@ -363,11 +407,7 @@ class OptionsDQN:
         if config.max_decisions is not None:
             # counts the decisions of the top executor (the policy's), or every step without an executor
             env = env.append_transform(DecisionCounter(config.max_decisions, level=_count_executors(env) or None))
-        if "episode_reward" not in env.observation_spec.keys():
-            env = env.append_transform(RewardSum())
-        if "step_count" not in env.observation_spec.keys():
-            env = env.append_transform(StepCounter())
-        return env
+        return _with_reward_sum_and_step_count(env)
 
     # ------------------------------------------------------------- training
     def train(
@@ -452,20 +492,9 @@ class OptionsDQN:
         self.log.losses.append(loss.item())
 
     def _record_episodes(self, batch: TensorDictBase) -> None:
-        done = batch.get(("next", "done")).squeeze(-1)
-        if not done.any():
+        returns = self.log.record_episodes(batch, self.frames)
+        if returns is None:
             return
-        # frame index (1-based) of every step, counting all envs of a time step together
-        n_envs = batch.shape[:-1].numel()
-        frame = self.frames + (torch.arange(batch.shape[-1]) + 1) * n_envs
-        frame = frame.expand(batch.shape).to(done.device)
-        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
-        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
-        ends = frame[done]
-        order = ends.argsort(stable=True)
-        self.log.episode_returns += returns[order].tolist()
-        self.log.episode_lengths += lengths[order].tolist()
-        self.log.episode_end_frames += ends[order].tolist()
         logger.info(
             "frames %d: %d episodes, mean return %.3f, epsilon %.3f",
             self.frames + batch.numel(),
@@ -487,16 +516,7 @@ class OptionsDQN:
             env = self.make_env()
         finally:
             self.config.num_envs = saved
-        env.set_seed(self.config.seed + 10_000)
-        _seed_executors(env, self.config.seed + 10_000)
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
-        env.close()
-        done = data.get(("next", "done")).squeeze(-1)
-        returns = data.get(("next", "episode_reward")).squeeze(-1)
-        if data.ndim > 1:  # [*envs, T] -> [T, *envs]: episodes in the order they ended
-            done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
-        return returns[done][:num_episodes].tolist()
+        return _greedy_returns(env, self.actor, num_episodes, max_steps, self.config.seed + 10_000)
 
     def record_evaluation(self, num_episodes: int = 10, max_steps: int = 1000) -> float:
         """Runs :meth:`evaluate` and appends ``[episodes, frames, mean return, episodes evaluated]`` to

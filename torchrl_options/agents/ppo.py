@@ -27,19 +27,19 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.collectors import Collector
-from torchrl.envs import (
-    EnvBase,
-    ExplorationType,
-    ParallelEnv,
-    RewardSum,
-    SerialEnv,
-    set_exploration_type,
-    StepCounter,
-)
+from torchrl.envs import EnvBase, ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from torchrl_options.agents.dqn import _count_executors, _generators, _seed_executors, TrainingLog
+from torchrl_options.agents.dqn import (
+    _batched_env,
+    _count_executors,
+    _generators,
+    _greedy_returns,
+    _seed_executors,
+    _with_reward_sum_and_step_count,
+    TrainingLog,
+)
 from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
 from torchrl_options.data.on_policy import OnPolicyDecisions
 from torchrl_options.objectives.decision_guard import guard_decision_level
@@ -255,10 +255,7 @@ class OptionsPPO:
         """The training env: batched envs, then the executor (outside the batch, one level above those the env
         already has), ``RewardSum``, ``StepCounter``."""
         config = self.config
-        if config.num_envs == 1:
-            env = self.env_factory()
-        else:
-            env = (ParallelEnv if config.parallel else SerialEnv)(config.num_envs, self.env_factory)
+        env = _batched_env(self.env_factory, config.num_envs, config.parallel)
         if config.mode != "actions":
             self._executor_level = 1 + _count_executors(env)
             env = env.append_transform(
@@ -271,11 +268,7 @@ class OptionsPPO:
                 )
             )
             _seed_executors(env, config.seed)
-        if "episode_reward" not in env.observation_spec.keys():
-            env = env.append_transform(RewardSum())
-        if "step_count" not in env.observation_spec.keys():
-            env = env.append_transform(StepCounter())
-        return env
+        return _with_reward_sum_and_step_count(env)
 
     # ------------------------------------------------------------- training
     def train(
@@ -346,18 +339,9 @@ class OptionsPPO:
                 self.log.losses.append(loss.item())
 
     def _record_episodes(self, batch: TensorDictBase) -> None:
-        done = batch.get(("next", "done")).squeeze(-1)
-        if not done.any():
+        returns = self.log.record_episodes(batch, self.frames)
+        if returns is None:
             return
-        n_envs = batch.shape[:-1].numel()
-        frame = (self.frames + (torch.arange(batch.shape[-1]) + 1) * n_envs).expand(batch.shape).to(done.device)
-        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
-        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
-        ends = frame[done]
-        order = ends.argsort(stable=True)
-        self.log.episode_returns += returns[order].tolist()
-        self.log.episode_lengths += lengths[order].tolist()
-        self.log.episode_end_frames += ends[order].tolist()
         logger.info("frames %d: %d episodes, mean return %.3f", self.frames + batch.numel(), len(returns), returns.float().mean().item())
 
     # ----------------------------------------------------------- evaluation
@@ -370,16 +354,7 @@ class OptionsPPO:
             env = self.make_env()
         finally:
             self.config.num_envs = saved
-        env.set_seed(self.config.seed + 10_000)
-        _seed_executors(env, self.config.seed + 10_000)
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            data = env.rollout(max_steps, self.actor, auto_cast_to_device=True, break_when_any_done=False)
-        env.close()
-        done = data.get(("next", "done")).squeeze(-1)
-        returns = data.get(("next", "episode_reward")).squeeze(-1)
-        if data.ndim > 1:
-            done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
-        return returns[done][:num_episodes].tolist()
+        return _greedy_returns(env, self.actor, num_episodes, max_steps, self.config.seed + 10_000)
 
     # ---------------------------------------------------------- checkpoints
     def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:
