@@ -258,6 +258,13 @@ def _chunked_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
             chunked_forward_backward(log_pi[sl], log_term[sl], log_cont[sl], log_eta[sl], mask[sl], terminal[sl], L)
         )
     ll, u, v, w, bad = (torch.cat(x, 0) for x in zip(*outs)) if len(outs) > 1 else outs[0]
+    return _recompute_flagged_rows((ll, u, v, w), bad, log_pi, log_term, log_cont, log_eta, mask, terminal)
+
+
+def _recompute_flagged_rows(outputs, bad, log_pi, log_term, log_cont, log_eta, mask, terminal):
+    """Overwrites the rows a fast backend flags (``bad``) with the log-space reference's, which also names the rows
+    of zero likelihood and raises."""
+    ll, u, v, w = outputs
     if bad.any():
         rows = bad.nonzero().flatten()
         ref = _forward_backward_reference(
@@ -274,14 +281,7 @@ def _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
     from torchrl_options.inference._numba_fb import numba_forward_backward
 
     ll, u, v, w, bad = numba_forward_backward(log_pi, log_term, log_cont, log_eta, mask, terminal)
-    if bad.any():
-        rows = bad.nonzero().flatten()
-        ref = _forward_backward_reference(
-            log_pi[rows], log_term[rows], log_cont[rows], log_eta[rows], mask[rows], terminal[rows], row_ids=rows
-        )
-        for out, r in zip((ll, u, v, w), ref):
-            out[rows] = r
-    return ll, u, v, w
+    return _recompute_flagged_rows((ll, u, v, w), bad, log_pi, log_term, log_cont, log_eta, mask, terminal)
 
 
 def _triton_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
