@@ -205,12 +205,17 @@ KEPT_GRIDWORLD_FIGURES = [
                             "H1s - A": "+0.150 [+0.019, +0.281] | ahead"}),
     ("four_rooms_dqn64", {"A": "0.350 [0.284, 0.416]", "H1u - A": "+0.090 [-0.211, +0.391] | no evidence"}),
 ]
+KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
+    ("four_rooms_ppo_15seeds", {"A": "0.517 [0.471, 0.563]", "H1u": "0.713 [0.665, 0.760]",
+                                "H2u": "1.038 [0.967, 1.109]", "H1u - A": "+0.196 [+0.131, +0.261] | ahead",
+                                "H2u - A": "+0.521 [+0.442, +0.601] | ahead"}),
+]
 NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
                     "+0.427 [+0.302, +0.552]"}
 
 
-@pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES)
+@pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
 def test_kept_results_back_the_readme(tmp_path, folder, expected):
     """The GridWorld figures quoted in the docs and README, recomputed from the results kept under results/."""
     import gzip
@@ -223,7 +228,8 @@ def test_kept_results_back_the_readme(tmp_path, folder, expected):
         (tmp_path / "results.csv").write_text(f.read())
     text = write_summary(tmp_path / "results.csv", tmp_path / "out", "kept", {"final_window": 100, "smooth_window": 50})
     for name, figure in expected.items():
-        row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | 3 |"
+        seeds = 15 if folder in dict(KEPT_PPO_FIGURES) else 3
+        row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | {seeds} |"
         assert any(line.startswith(row) and figure in line for line in text.splitlines()), (name, figure)
 
 
@@ -244,3 +250,9 @@ def test_kept_figures_are_quoted():
         assert figure.replace("+", "") in page, f"{figure} is not on docs/experiments/gridworld.md"
     for figure in sorted(README_HEADLINES):
         assert figure.replace("+", "") in readme, f"{figure} is not in the README's results table"
+    ppo = read("docs", "ppo.md")
+    for name, expected in KEPT_PPO_FIGURES[0][1].items():
+        figure = expected.split(" |")[0]
+        assert figure.replace("+", "") in ppo, f"{figure} is not on docs/ppo.md"
+        if " - " in name:
+            assert figure.replace("+", "") in readme, f"{figure} is not in the README's results table"
