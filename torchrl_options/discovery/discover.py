@@ -16,6 +16,7 @@ from torchrl_options.discovery._validation import check_discover_options, check_
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters
 from torchrl_options.discovery.tabulated import TabulatedDDO
+from torchrl_options.discovery.width import AUTO_WIDTHS, select_width
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP
 from torchrl_options.objectives import DDOLoss
 
@@ -62,6 +63,9 @@ class DiscoveryResult:
         duplicate_options (list of tuple): pairs of options that act and terminate alike on the demonstrations.
         warnings (list of str): signs the run may be stuck in a local optimum (an unused option, duplicates, starts
             that disagree), also logged as warnings.
+        num_cells (int or None): with ``num_cells="auto"``, the hidden-layer width chosen; ``None`` otherwise.
+        width_log_likelihoods (dict): with ``num_cells="auto"``, each candidate width's log-likelihood per step on
+            the held-out trajectories (:func:`~torchrl_options.discovery.width.select_width`); empty otherwise.
     """
 
     options: TensorDictModuleBase
@@ -72,6 +76,8 @@ class DiscoveryResult:
     option_usage: list[float] = field(default_factory=list)
     duplicate_options: list[tuple[int, int]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    num_cells: int | None = None
+    width_log_likelihoods: dict[int, float] = field(default_factory=dict)
 
     @property
     def final_log_likelihood_per_step(self) -> float:
@@ -416,7 +422,12 @@ def discover_options(
         obs_keys (NestedKey or list): observation entries the default modules read. Defaults to ``"observation"``.
         action_key (NestedKey): the action entry. Defaults to ``"action"``.
         num_cells, activation, architecture: for the default modules. Defaults: 8 tanh units, one hidden layer,
-            separate networks per option (the paper's four rooms: 2 tanh units).
+            separate networks per option (the paper's four rooms: 2 tanh units). ``num_cells="auto"`` chooses the
+            width among :data:`~torchrl_options.discovery.width.AUTO_WIDTHS` (4 and 8) by the log-likelihood of
+            20% of the trajectories held out while each width is fitted on the rest (with the restarts), then
+            trains the chosen fit on all the trajectories; about 2.5 times the cost of one width. The result's
+            ``num_cells`` and ``width_log_likelihoods`` say what was chosen and why, and its ``history`` holds
+            the chosen width's iterations on the training share followed by those on all the trajectories.
         init (str): ``"random"`` (default) or ``"kmeans"`` (pre-clustering of state-action pairs, appendix B).
         num_iterations (int): the most iterations (E-steps). Defaults to 1000 (the stopping rule usually ends
             training sooner).
@@ -471,6 +482,8 @@ def discover_options(
         raise ValueError(f"num_iterations must be an int >= 0, got {num_iterations!r}.")
     _check_m_steps(m_steps)
     _check_tol(tol, patience)
+    if isinstance(num_cells, str) and num_cells != "auto":
+        raise ValueError(f"num_cells must be an int, a sequence of ints or 'auto', got {num_cells!r}.")
     fresh_modules = options is None and not isinstance(optimizer, torch.optim.Optimizer) and isinstance(meta_control, str)
     if restarts is None:
         # several short starts are the default whenever fresh modules can be drawn for each; a user's own modules
@@ -514,6 +527,38 @@ def discover_options(
     if options is None and action_space == "categorical" and num_actions is None:
         num_actions = int(data.get(action_key)[mask].max()) + 1
         logger.info("num_actions not given: using max(action) + 1 = %d", num_actions)
+    if isinstance(num_cells, str):
+        if not fresh_modules or buffer is not None or data.batch_size[0] < 5:
+            raise ValueError(
+                "num_cells='auto' fits fresh default modules of each width in AUTO_WIDTHS on 80% of the trajectories "
+                "and keeps the width with the best likelihood on the rest: it needs options=None, meta_control "
+                "'uniform' or 'learned', no optimizer instance, and at least 5 trajectories given as tensordicts "
+                f"(not a replay buffer); got {data.batch_size[0]} trajectories"
+                + (" from a replay buffer" if buffer is not None else "") + "."
+            )
+        common = dict(
+            meta_control=meta_control, num_actions=num_actions, action_space=action_space, obs_keys=obs_keys,
+            action_key=action_key, activation=activation, architecture=architecture, num_iterations=num_iterations,
+            m_steps=m_steps, tol=tol, patience=patience, batch_size=batch_size, optimizer=optimizer, lr=lr,
+            lr_scheduler=lr_scheduler, device=device, seed=seed, progress=progress, log_every=log_every,
+            return_info=True,
+        )  # fmt: skip
+
+        def fit(part: TensorDictBase, width: int) -> DiscoveryResult:
+            return discover_options(part, num_options, num_cells=width, init=init, restarts=restarts,
+                                    restart_iterations=restart_iterations, desc=f"{desc} {width} units", **common)  # fmt: skip
+
+        width, first, scores = select_width(
+            fit, data, widths=AUTO_WIDTHS, generator=generator, action_space=action_space, action_key=action_key
+        )
+        # the chosen fit continues on all the trajectories (its starts were already selected on the training share)
+        common["meta_control"] = first.meta_control if first.meta_control is not None else "uniform"
+        final = discover_options(data, num_options, options=first.options, num_cells=width, restarts=1, desc=desc,
+                                 **common)  # fmt: skip
+        final.restart_log_likelihoods = first.restart_log_likelihoods
+        final.history = first.history + final.history
+        final.num_cells, final.width_log_likelihoods = width, scores
+        return final if return_info else final.options
     if init not in ("random", "kmeans"):
         raise ValueError(f"init must be 'random' or 'kmeans', got {init!r}.")
     if isinstance(meta_control, str) and meta_control not in ("uniform", "learned"):
