@@ -265,18 +265,33 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
 
 
 @_jit(nogil=True, fastmath=_FASTMATH)
-def grad_rows(g, u, v, w, term_weight, g_pi, g_term, g_cont, g_eta, b0, b1):
-    """The Expectation-Gradient of rows ``b0 .. b1 - 1`` in one pass: ``g u``, ``g (u - w)`` where
-    ``term_weight`` (``[B, T]``: log_term enters the likelihood there), ``g * 0`` elsewhere, ``g w`` and ``g v``."""
+def grad_rows(g, u, v, w, lengths, terminal, g_pi, g_term, g_cont, g_eta, b0, b1):
+    """The Expectation-Gradient of rows ``b0 .. b1 - 1`` in one pass: ``g u``, ``g (u - w)``, ``g w`` and ``g v``,
+    with ``g`` the row's ``grad_ll``, except ``g_term = g * 0`` at a non-terminal row's last valid step (log_term
+    does not enter its likelihood there; after it, on padding, ``u = w = 0``, and at a terminal row's last step
+    ``w = 0``, so ``g (u - w)`` is already what the likelihood's gradient is).
+
+    Each row is a contiguous ``T * K`` block, so the loops run flat over it (long, vectorised)."""
     T, K = u.shape[1], u.shape[2]
+    N = T * K
     for b in range(b0, b1):
         gb = g[b]
-        for t in range(T):
-            weight = term_weight[b, t]
+        ub = u[b].reshape(N)
+        vb = v[b].reshape(N)
+        wb = w[b].reshape(N)
+        pb = g_pi[b].reshape(N)
+        tb = g_term[b].reshape(N)
+        cb = g_cont[b].reshape(N)
+        eb = g_eta[b].reshape(N)
+        for i in range(N):
+            pb[i] = gb * ub[i]
+        for i in range(N):
+            tb[i] = gb * (ub[i] - wb[i])
+        for i in range(N):
+            cb[i] = gb * wb[i]
+        for i in range(N):
+            eb[i] = gb * vb[i]
+        if not terminal[b]:
+            last = lengths[b] - 1
             for h in range(K):
-                uu = u[b, t, h]
-                ww = w[b, t, h]
-                g_pi[b, t, h] = gb * uu
-                g_cont[b, t, h] = gb * ww
-                g_eta[b, t, h] = gb * v[b, t, h]
-                g_term[b, t, h] = gb * (uu - ww) if weight else gb * 0.0
+                g_term[b, last, h] = gb * 0.0
