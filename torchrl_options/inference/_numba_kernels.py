@@ -26,11 +26,36 @@ _LN2_LO = 1.90821492927058770002e-10
 _EXP_MIN = -708.0
 
 
-def _jit(**kwargs):
-    """``numba.njit`` with the on-disk cache where Numba finds a writable place for it, in memory otherwise."""
+def _noalias_pipeline():
+    """A Numba compiler pipeline that marks the array arguments ``noalias`` (as Numba does for its parallel
+    loops): the compiler then needs no run-time overlap checks between them before vectorising a loop. Only for
+    kernels whose written arrays are fresh outputs, never another argument's memory (the inputs may alias each
+    other: they are only read). ``None`` where this Numba does not offer it (then the kernels compile without it).
+    """
+    try:
+        from numba.core.compiler import CompilerBase, DefaultPassBuilder
+    except ImportError:  # pragma: no cover - another Numba layout
+        return None
+
+    class NoAliasCompiler(CompilerBase):
+        def define_pipelines(self):
+            self.state.flags.noalias = True
+            return [DefaultPassBuilder.define_nopython_pipeline(self.state)]
+
+    return NoAliasCompiler
+
+
+_NOALIAS_PIPELINE = _noalias_pipeline()
+
+
+def _jit(noalias=False, **kwargs):
+    """``numba.njit`` with the on-disk cache where Numba finds a writable place for it, in memory otherwise;
+    ``noalias``: compile with :func:`_noalias_pipeline` where available."""
 
     # error_model="numpy": a division by zero gives inf (a row of zero likelihood is flagged, not raised).
     kwargs.setdefault("error_model", "numpy")
+    if noalias and _NOALIAS_PIPELINE is not None:
+        kwargs["pipeline_class"] = _NOALIAS_PIPELINE
 
     def wrap(fn):
         try:
@@ -84,7 +109,7 @@ def _factor(x):
     return f, (f == 0.0) & (x > -np.inf)
 
 
-@_jit(nogil=True, fastmath=_FASTMATH)
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zfloor, sfloor, b0, b1):
     """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), ``u``,
     ``v``, ``w`` (zeros on padding) and ``bad`` [B] (the caller passes False; a flagged row's u, v, w are partial).
@@ -264,7 +289,7 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             bad[b] = True
 
 
-@_jit(nogil=True, fastmath=_FASTMATH)
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def grad_rows(g, u, v, w, lengths, terminal, g_pi, g_term, g_cont, g_eta, b0, b1):
     """The Expectation-Gradient of rows ``b0 .. b1 - 1`` in one pass: ``g u``, ``g (u - w)``, ``g w`` and ``g v``,
     with ``g`` the row's ``grad_ll``, except ``g_term = g * 0`` at a non-terminal row's last valid step (log_term
