@@ -39,7 +39,10 @@ def _noalias_pipeline():
 
     class NoAliasCompiler(CompilerBase):
         def define_pipelines(self):
-            self.state.flags.noalias = True
+            try:
+                self.state.flags.noalias = True
+            except (AttributeError, TypeError, ValueError):  # pragma: no cover - a Numba without the flag
+                pass
             return [DefaultPassBuilder.define_nopython_pipeline(self.state)]
 
     return NoAliasCompiler
