@@ -19,6 +19,7 @@ is the time to read the four inputs and write u, v, w once (``7 B T K`` elements
     python benchmarks/bench_forward_backward.py                       # CPU, 1 and 2 threads, the issue's shapes
     python benchmarks/bench_forward_backward.py --threads 1 --shapes "64,1000,8;16,100,4"
     python benchmarks/bench_forward_backward.py --compile-time        # also Numba's first-call time, cold and cached
+    python benchmarks/bench_forward_backward.py --breakdown           # where the numba backend's time goes
     python benchmarks/bench_forward_backward.py --device cuda         # adds (4096, 1000, 16) and the Triton kernel
 """
 from __future__ import annotations
@@ -139,6 +140,67 @@ def numba_first_call_times() -> tuple[str, str]:
     return out[0], out[1]
 
 
+def numba_breakdown(B, T, K, reps):
+    """Median process CPU times [ms] of the numba backend's parts at (B, T, K), float32, 1 thread, interleaved:
+    the compiled forward-backward kernel alone (outputs allocated once), the same with its outputs allocated per
+    call, ``numba_forward_backward`` (the Python preparation around the kernel), ``forward_backward`` without
+    autograd, the gradient kernel alone, ``numba_expectation_gradient`` (its outputs allocated per call), and
+    forward + ``torch.autograd.grad`` with respect to all four inputs (what the main table times)."""
+    import numpy as np
+
+    from torchrl_options.inference import _numba_fb as nf
+
+    k = nf._kernels()
+    xs = make_inputs(B, T, K, torch.device("cpu"))
+    d = [x.detach() for x in xs]
+    mask = torch.ones(B, T, dtype=torch.bool)
+    term = torch.zeros(B, dtype=torch.bool)
+    nps = [x.numpy() for x in d]
+    lengths = np.full(B, T, np.int64)
+    termn = np.zeros(B, dtype=bool)
+    floors = (nf._FLOOR, nf._Z_FLOOR, nf._S_FLOOR)
+    ll, u, v, w, bad = nf.numba_forward_backward(*d, mask, term)
+    g = torch.ones(B)
+    kept = [np.empty((B, T, K), np.float32) for _ in range(4)]
+
+    def kernel():
+        k.fb_rows(*nps, lengths, termn, ll.double().numpy(), u.numpy(), v.numpy(), w.numpy(), bad.numpy(), *floors, 0, B)
+
+    def kernel_alloc():
+        outs = [torch.empty(B, T, K) for _ in range(3)]
+        k.fb_rows(*nps, lengths, termn, np.empty(B), *(o.numpy() for o in outs), np.zeros(B, bool), *floors, 0, B)
+
+    def grad_kernel():
+        k.grad_rows(g.numpy(), u.numpy(), v.numpy(), w.numpy(), lengths, termn, *kept, 0, B)
+
+    def full():
+        out = forward_backward(*xs, validate=False, backend="numba")
+        torch.autograd.grad(out.log_likelihood.sum(), xs)
+
+    def no_grad():
+        with torch.no_grad():
+            forward_backward(*d, validate=False, backend="numba")
+
+    parts = {
+        "fb kernel (outputs kept)": kernel,
+        "fb kernel (outputs allocated)": kernel_alloc,
+        "numba_forward_backward": lambda: nf.numba_forward_backward(*d, mask, term),
+        "forward_backward, no autograd": no_grad,
+        "gradient kernel (outputs kept)": grad_kernel,
+        "numba_expectation_gradient": lambda: nf.numba_expectation_gradient(g, u, v, w, mask, term),
+        "forward + autograd.grad": full,
+    }
+    times = {name: [] for name in parts}
+    for f in parts.values():
+        f()
+    for _ in range(reps):
+        for name, f in parts.items():
+            c0 = time.process_time()
+            f()
+            times[name].append(time.process_time() - c0)
+    return {name: statistics.median(t) * 1e3 for name, t in times.items()}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
@@ -147,6 +209,7 @@ def main(argv=None):
     p.add_argument("--threads", default="1,2", help="comma-separated thread counts (torch.set_num_threads)")
     p.add_argument("--backends", default=None, help="default: baseline and every backend that can run, and auto")
     p.add_argument("--compile-time", action="store_true", help="also time Numba's first call in a fresh process")
+    p.add_argument("--breakdown", action="store_true", help="only the numba backend's parts (1 thread, CPU time)")
     args = p.parse_args(argv)
     device = torch.device(args.device)
     if args.shapes:
@@ -167,6 +230,17 @@ def main(argv=None):
         cold, warm = numba_first_call_times()
         print(f"numba first call (fresh process, forward + gradient, float32 and float64): {cold} s with an empty "
               f"cache (compilation), {warm} s with the cache (loading)")  # fmt: skip
+    if args.breakdown:
+        torch.set_num_threads(1)
+        bw = copy_bandwidth(device)
+        print(f"numba backend, parts: median process CPU time of {args.reps} interleaved rounds, 1 thread; copy "
+              f"bandwidth {bw / 1e9:.1f} GB/s")  # fmt: skip
+        for B, T, K in shapes:
+            floor = 7 * B * T * K * 4 / bw
+            print(f"\n{B}, {T}, {K} (memory floor {floor * 1e3:.2f} ms); {load()}")
+            for name, ms in numba_breakdown(B, T, K, args.reps).items():
+                print(f"  {name:<32} {ms:8.2f} ms {ms / 1e3 / floor:6.1f}x floor")
+        return
     for threads in [int(n) for n in args.threads.split(",")]:
         torch.set_num_threads(threads)
         bw = copy_bandwidth(device)

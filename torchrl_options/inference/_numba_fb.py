@@ -146,17 +146,19 @@ def numba_forward_backward(
 
 
 def numba_expectation_gradient(
-    grad_ll: Tensor, u: Tensor, v: Tensor, w: Tensor, term_weight: Tensor
+    grad_ll: Tensor, u: Tensor, v: Tensor, w: Tensor, mask: Tensor, terminal: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The gradients of ``sum(grad_ll * log P)`` with respect to ``(log_pi, log_term, log_cont, log_eta)`` in one
-    pass over the marginals: ``g u``, ``g (u - w)`` where ``term_weight`` ([B, T] bool: the steps whose log_term
-    enters the likelihood) else 0, ``g w`` and ``g v``, with ``g`` the row's ``grad_ll``; the values of the
-    PyTorch expression of :class:`~torchrl_options.inference.forward_backward._ForwardBackward`."""
+    pass over the marginals: ``g u``, ``g (u - w)`` on the steps whose log_term enters the likelihood (all valid
+    steps but the last, and the last of a ``terminal`` row) else 0, ``g w`` and ``g v``, with ``g`` the row's
+    ``grad_ll``; the values of the PyTorch expression of
+    :class:`~torchrl_options.inference.forward_backward._ForwardBackward`."""
     k = _kernels()
     B, T, K = u.shape
     g = grad_ll.detach().to(u.dtype).contiguous().numpy()
-    tw = term_weight.contiguous().numpy()
-    outs = tuple(torch.empty_like(u) for _ in range(4))
-    args = (g, u.contiguous().numpy(), v.contiguous().numpy(), w.contiguous().numpy(), tw, *(x.numpy() for x in outs))
+    lengths = mask.sum(1).numpy()
+    term = terminal.contiguous().numpy()
+    outs = tuple(torch.empty_like(u) for _ in range(4))  # every entry is written by the kernel
+    args = (g, u.numpy(), v.numpy(), w.numpy(), lengths, term, *(x.numpy() for x in outs))
     _run_rows(k.grad_rows, args, np.full(B, T))
     return outs

@@ -26,11 +26,39 @@ _LN2_LO = 1.90821492927058770002e-10
 _EXP_MIN = -708.0
 
 
-def _jit(**kwargs):
-    """``numba.njit`` with the on-disk cache where Numba finds a writable place for it, in memory otherwise."""
+def _noalias_pipeline():
+    """A Numba compiler pipeline that marks the array arguments ``noalias`` (as Numba does for its parallel
+    loops): the compiler then needs no run-time overlap checks between them before vectorising a loop. Only for
+    kernels whose written arrays are fresh outputs, never another argument's memory (the inputs may alias each
+    other: they are only read). ``None`` where this Numba does not offer it (then the kernels compile without it).
+    """
+    try:
+        from numba.core.compiler import CompilerBase, DefaultPassBuilder
+    except ImportError:  # pragma: no cover - another Numba layout
+        return None
+
+    class NoAliasCompiler(CompilerBase):
+        def define_pipelines(self):
+            try:
+                self.state.flags.noalias = True
+            except (AttributeError, TypeError, ValueError):  # pragma: no cover - a Numba without the flag
+                pass
+            return [DefaultPassBuilder.define_nopython_pipeline(self.state)]
+
+    return NoAliasCompiler
+
+
+_NOALIAS_PIPELINE = _noalias_pipeline()
+
+
+def _jit(noalias=False, **kwargs):
+    """``numba.njit`` with the on-disk cache where Numba finds a writable place for it, in memory otherwise;
+    ``noalias``: compile with :func:`_noalias_pipeline` where available."""
 
     # error_model="numpy": a division by zero gives inf (a row of zero likelihood is flagged, not raised).
     kwargs.setdefault("error_model", "numpy")
+    if noalias and _NOALIAS_PIPELINE is not None:
+        kwargs["pipeline_class"] = _NOALIAS_PIPELINE
 
     def wrap(fn):
         try:
@@ -84,7 +112,7 @@ def _factor(x):
     return f, (f == 0.0) & (x > -np.inf)
 
 
-@_jit(nogil=True, fastmath=_FASTMATH)
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zfloor, sfloor, b0, b1):
     """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), ``u``,
     ``v``, ``w`` (zeros on padding) and ``bad`` [B] (the caller passes False; a flagged row's u, v, w are partial).
@@ -264,19 +292,34 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             bad[b] = True
 
 
-@_jit(nogil=True, fastmath=_FASTMATH)
-def grad_rows(g, u, v, w, term_weight, g_pi, g_term, g_cont, g_eta, b0, b1):
-    """The Expectation-Gradient of rows ``b0 .. b1 - 1`` in one pass: ``g u``, ``g (u - w)`` where
-    ``term_weight`` (``[B, T]``: log_term enters the likelihood there), ``g * 0`` elsewhere, ``g w`` and ``g v``."""
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
+def grad_rows(g, u, v, w, lengths, terminal, g_pi, g_term, g_cont, g_eta, b0, b1):
+    """The Expectation-Gradient of rows ``b0 .. b1 - 1`` in one pass: ``g u``, ``g (u - w)``, ``g w`` and ``g v``,
+    with ``g`` the row's ``grad_ll``, except ``g_term = g * 0`` at a non-terminal row's last valid step (log_term
+    does not enter its likelihood there; after it, on padding, ``u = w = 0``, and at a terminal row's last step
+    ``w = 0``, so ``g (u - w)`` is already what the likelihood's gradient is).
+
+    Each row is a contiguous ``T * K`` block, so the loops run flat over it (long, vectorised)."""
     T, K = u.shape[1], u.shape[2]
+    N = T * K
     for b in range(b0, b1):
         gb = g[b]
-        for t in range(T):
-            weight = term_weight[b, t]
+        ub = u[b].reshape(N)
+        vb = v[b].reshape(N)
+        wb = w[b].reshape(N)
+        pb = g_pi[b].reshape(N)
+        tb = g_term[b].reshape(N)
+        cb = g_cont[b].reshape(N)
+        eb = g_eta[b].reshape(N)
+        for i in range(N):
+            pb[i] = gb * ub[i]
+        for i in range(N):
+            tb[i] = gb * (ub[i] - wb[i])
+        for i in range(N):
+            cb[i] = gb * wb[i]
+        for i in range(N):
+            eb[i] = gb * vb[i]
+        if not terminal[b]:
+            last = lengths[b] - 1
             for h in range(K):
-                uu = u[b, t, h]
-                ww = w[b, t, h]
-                g_pi[b, t, h] = gb * uu
-                g_cont[b, t, h] = gb * ww
-                g_eta[b, t, h] = gb * v[b, t, h]
-                g_term[b, t, h] = gb * (uu - ww) if weight else gb * 0.0
+                g_term[b, last, h] = gb * 0.0

@@ -374,7 +374,7 @@ class _ForwardBackward(torch.autograd.Function):
     @staticmethod
     def forward(ctx, log_pi, log_term, log_cont, log_eta, mask, terminal, backend):
         ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
-        ctx.save_for_backward(u, v, w, _term_weight(mask, terminal))
+        ctx.save_for_backward(u, v, w, mask, terminal)
         ctx.mark_non_differentiable(u, v, w)
         ctx.backend = backend
         return ll, u, v, w
@@ -382,15 +382,16 @@ class _ForwardBackward(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_ll, grad_u, grad_v, grad_w):
-        u, v, w, term_weight = ctx.saved_tensors
+        u, v, w, mask, terminal = ctx.saved_tensors
+        if ctx.backend == "numba":
+            from torchrl_options.inference._numba_fb import numba_expectation_gradient
+
+            return (*numba_expectation_gradient(grad_ll, u, v, w, mask, terminal), None, None, None)
+        term_weight = _term_weight(mask, terminal)
         if ctx.backend == "triton":
             from torchrl_options.inference._triton_fb import triton_expectation_gradient
 
             return (*triton_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
-        if ctx.backend == "numba":
-            from torchrl_options.inference._numba_fb import numba_expectation_gradient
-
-            return (*numba_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
         g = grad_ll.view(-1, 1, 1)
         grad_term = torch.where(term_weight.unsqueeze(-1), u - w, 0.0)
         return g * u, g * grad_term, g * w, g * v, None, None, None
