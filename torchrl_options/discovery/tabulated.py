@@ -286,8 +286,9 @@ class TabulatedDDO:
     def _flat_indices(self, K: int) -> dict:
         """Per-batch indices, computed once (per K): ``steps``, the flat positions of the valid steps (``None`` when
         all are valid); ``pair``, ``next``, ``meta``, the flat positions ``row * K + h`` in the ``[rows, K]`` tables
-        of the pairs, states and meta-control states of the valid steps' ``K`` entries; ``term_weight`` ``[B, T, 1]``,
-        the steps whose ``log_term`` enters the likelihood (all valid steps but each row's last, unless terminal)."""
+        of the pairs, states and meta-control states of the valid steps' ``K`` entries; ``term_steps``, the flat
+        positions of the steps whose ``log_term`` enters the likelihood (all valid steps but each row's last, unless
+        the row is terminal), and ``next_term``, their entries in the state table."""
         if self._flat is None or self._flat["K"] != K:
             valid = self.mask.reshape(-1)
             steps = None if bool(valid.all()) else valid.nonzero().squeeze(1)
@@ -300,10 +301,13 @@ class TabulatedDDO:
 
             lengths = self.mask.sum(1, keepdim=True)
             t = torch.arange(self.mask.shape[1], device=valid.device)
-            term_weight = (t < lengths - 1) | ((t == lengths - 1) & self.terminal.unsqueeze(1))
+            term_steps = ((t < lengths - 1) | ((t == lengths - 1) & self.terminal.unsqueeze(1))).reshape(-1)
+            term_steps = term_steps.nonzero().squeeze(1)
+            next_term = (self.next_index.reshape(-1)[term_steps].unsqueeze(1) * K + options).reshape(-1)
             self._flat = dict(
                 K=K, steps=steps, pair=entries(self.pair_index), next=entries(self.next_index),
-                meta=None if self.meta_index is None else entries(self.meta_index), term_weight=term_weight.unsqueeze(-1),
+                meta=None if self.meta_index is None else entries(self.meta_index), term_steps=term_steps,
+                next_term=next_term,
             )  # fmt: skip
         return self._flat
 
@@ -390,10 +394,11 @@ class TabulatedDDO:
             forward = self._forward()
         with torch.no_grad():
             pi, term_logits, meta_logits = forward
-            log_pi_pairs = self._pair_log_pi(pi).detach()
-            term_logits = term_logits.detach()
+            # contiguous tables: the gathers below read whole rows
+            log_pi_pairs = self._pair_log_pi(pi).detach().contiguous()
+            term_logits = term_logits.detach().contiguous()
             K = log_pi_pairs.shape[-1]
-            log_meta = None if meta_logits is None else meta_logits.detach().log_softmax(-1)
+            log_meta = None if meta_logits is None else meta_logits.detach().log_softmax(-1).contiguous()
             self._check_outputs(log_pi_pairs, term_logits, log_meta)
 
             def per_step(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -417,18 +422,19 @@ class TabulatedDDO:
             # d / d log_term = u - w where log_term enters the likelihood, else 0, d / d log_cont = w,
             # d / d log_eta = v) summed per table row
             flat = self._flat_indices(K)
-            steps = flat["steps"]
 
-            def counts(values: torch.Tensor, entries: torch.Tensor, size: int) -> torch.Tensor:
+            def counts(values: torch.Tensor, entries: torch.Tensor, size: int, steps: torch.Tensor | None) -> torch.Tensor:
                 values = values.reshape(B * T, K)
                 values = values if steps is None else values.index_select(0, steps)
                 out = torch.zeros(size * K, dtype=values.dtype, device=values.device)
                 return out.scatter_add_(0, entries, values.reshape(-1)).view(size, K)
 
-            n_pi = counts(fb.u, flat["pair"], self.num_pairs)
-            n_term = counts(torch.where(flat["term_weight"], fb.u - fb.w, 0.0), flat["next"], self.num_states)
-            n_cont = counts(fb.w, flat["next"], self.num_states)
-            n_eta = None if log_meta is None else counts(fb.v, flat["meta"], self.meta_table.batch_size[0])
+            steps, U = flat["steps"], self.num_states
+            n_pi = counts(fb.u, flat["pair"], self.num_pairs, steps)
+            n_term = counts(fb.u - fb.w, flat["next_term"], U, flat["term_steps"])
+            n_cont = counts(fb.w, flat["next"], U, steps)
+            n_eta = None if log_meta is None else counts(fb.v, flat["meta"], self.meta_table.batch_size[0], steps)
+            n_stop = n_term + n_cont
             if isinstance(pi, tuple):
                 # Q's policy term per state: sum_a N[s, h, a] logits[s, h, a] - (sum_a N[s, h, a]) logsumexp[s, h]
                 n_pi_dense = torch.zeros(pi[0].shape, dtype=n_pi.dtype, device=n_pi.device)
@@ -454,8 +460,8 @@ class TabulatedDDO:
                 q = q - torch.where(state_used, n_pi_state * lse, 0.0).sum()
             else:
                 q = torch.where(pi_used, n_pi * pi, 0.0).sum()
-            q = q + (n_term * torch.nn.functional.logsigmoid(term_logits)).sum()
-            q = q + (n_cont * torch.nn.functional.logsigmoid(-term_logits)).sum()
+            # n_term log psi + n_cont log(1 - psi), with log(1 - sigmoid(x)) = logsigmoid(x) - x
+            q = q + (n_stop * torch.nn.functional.logsigmoid(term_logits) - n_cont * term_logits).sum()
             if n_eta is not None:
                 q = q + torch.where(eta_used, n_eta * meta_logits, 0.0).sum()
                 q = q - torch.where(eta_sum_used, n_eta_sum * torch.logsumexp(meta_logits, -1), 0.0).sum()
