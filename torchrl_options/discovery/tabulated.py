@@ -416,14 +416,15 @@ class TabulatedDDO:
             n = self.num_steps
             ll = fb.log_likelihood.sum()
             psi_next = per_step(torch.sigmoid(term_logits), self.next_index)
-            record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **ddo_diagnostics(fb.u, fb.v, psi_next, n)}
+            diagnostics = ddo_diagnostics(fb.u, fb.v, psi_next, n)
+            record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **diagnostics}
 
             # the expected counts: the Expectation-Gradient of forward_backward (d log P / d log_pi = u,
             # d / d log_term = u - w where log_term enters the likelihood, else 0, d / d log_cont = w,
             # d / d log_eta = v) summed per table row
             flat = self._flat_indices(K)
 
-            def counts(values: torch.Tensor, entries: torch.Tensor, size: int, steps: torch.Tensor | None) -> torch.Tensor:
+            def counts(values: torch.Tensor, entries: torch.Tensor, size: int, steps: torch.Tensor | None):
                 values = values.reshape(B * T, K)
                 values = values if steps is None else values.index_select(0, steps)
                 out = torch.zeros(size * K, dtype=values.dtype, device=values.device)
