@@ -207,6 +207,84 @@ def test_tabulated_e_step_matches_ddo_loss(meta):
         loss.zero_grad()
 
 
+class _BlockedOptions(torch.nn.Module):
+    """OptionsMLP whose option 0 cannot take action 1 (logit -inf): zero counts times -inf must contribute nothing."""
+
+    def __init__(self):
+        super().__init__()
+        self.net = OptionsMLP(2, 3, 2, num_cells=4)
+
+    def forward(self, obs):
+        td = self.net(TensorDict({"observation": obs}, obs.shape[:-1]))
+        logits = td["option_logits"].clone()
+        logits[..., 0, 1] = float("-inf")
+        return logits, td["termination_logits"]
+
+
+def _tabulated_matches_ddo_loss(loss, data):
+    out = loss(data)
+    out["loss_ddo"].backward()
+    expected = [p.grad.clone() for p in loss.parameters()]
+    loss.zero_grad()
+    record, objective = TabulatedDDO(loss, data).e_step()
+    value = objective()
+    assert torch.isfinite(value)
+    value.backward()
+    for key in loss.out_keys:
+        torch.testing.assert_close(record[key], out[key].detach())
+    for p, g in zip(loss.parameters(), expected):
+        assert torch.isfinite(p.grad).all()
+        torch.testing.assert_close(p.grad, g, atol=1e-6, rtol=1e-5)
+
+
+def test_tabulated_e_step_matches_ddo_loss_gaussian_one_hot_and_impossible_actions():
+    """The tabulated objective's gradient is DDOLoss's for Gaussian options, one-hot actions, and options that cannot
+    take some action (a -inf logit)."""
+    from torchrl_options import GaussianOptionsMLP
+
+    torch.manual_seed(0)
+    B, T = 3, 25
+    obs = torch.randint(4, (B, T + 1, 2)).float()  # few distinct states, so that the tables are small
+    base = {"observation": obs[:, :-1], "next": {"observation": obs[:, 1:]}}
+    mask = torch.ones(B, T, dtype=torch.bool)
+    mask[1, 18:] = False
+    base["collector", "mask"] = mask
+    action = (obs[:, :-1, 0] > 1).long() * 2  # 0 or 2: option 0's blocked action 1 is never taken
+    continuous = TensorDict({**base, "action": obs[:, :-1, :1] * 0.3 + 0.1 * torch.randn(B, T, 1)}, [B, T])
+    _tabulated_matches_ddo_loss(DDOLoss(GaussianOptionsMLP(2, 1, 2, num_cells=4)), continuous)
+    one_hot = TensorDict({**base, "action": torch.nn.functional.one_hot(action, 3)}, [B, T])
+    _tabulated_matches_ddo_loss(DDOLoss(OptionsMLP(2, 3, 2, num_cells=4)), one_hot)
+    blocked = TensorDictModule(
+        _BlockedOptions(), in_keys=["observation"], out_keys=["option_logits", "termination_logits"]
+    )
+    _tabulated_matches_ddo_loss(DDOLoss(blocked), TensorDict({**base, "action": action}, [B, T]))
+
+
+def test_tabulated_objective_reuses_the_e_step_forward_only_at_its_parameters():
+    """The first objective() reuses the E-step's forward pass, but not once the parameters have changed."""
+    data = planted_corridor_demonstrations(4, 30, seed=0)
+    torch.manual_seed(0)
+    loss = DDOLoss(OptionsMLP(2, 2, 2, num_cells=4))
+    table = TabulatedDDO(loss, data)
+    (_, first), (_, second) = table.e_step(), table.e_step()  # same parameters: same counts
+    at_start = first()
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.add_(0.1)
+    moved = second()  # its cached forward pass is from before the change: it must not be used
+    assert moved.item() != at_start.item()
+    assert moved.item() == first().item()  # first's cache is spent: evaluated anew too
+
+
+def test_tabulated_e_step_refuses_nan_outputs_naming_the_step():
+    data = planted_corridor_demonstrations(3, 20, seed=0)
+    loss = DDOLoss(OptionsMLP(2, 2, 2, num_cells=4))
+    with torch.no_grad():
+        loss.options.control.params.get(("2", "bias")).fill_(float("nan"))
+    with pytest.raises(ValueError, match=r"log pi .* holds NaN or \+inf at valid step \(b, t\) = \(0, 0\)"):
+        TabulatedDDO(loss, data).e_step()
+
+
 def test_tabulated_e_step_reads_the_loss_mask_keys():
     """TabulatedDDO masks as its loss does: tensor_keys.mask and the loss_mask_key entries (NaN padding ignored)."""
     data = planted_corridor_demonstrations(4, 30, seed=2).exclude(("collector", "mask"))

@@ -445,7 +445,7 @@ def discover_options(
         restart_iterations (int): the iterations given to each start when ``restarts > 1``. Defaults to 40.
         batch_size (int, optional): trajectories per minibatch; ``None`` uses all (or the buffer's batch size).
         optimizer: an optimizer instance over the modules' parameters, or a factory called as
-            ``optimizer(params, lr=lr)``. Defaults to Adam (``foreach=True``).
+            ``optimizer(params, lr=lr)``. Defaults to Adam (``fused=True`` on CPU and CUDA, else ``foreach=True``).
         lr (float): learning rate for the default or factory-made optimizer. Defaults to 0.03.
         lr_scheduler (callable, optional): ``lr_scheduler(optimizer)`` makes a learning-rate scheduler of the
             optimizer (given or made), stepped once per iteration, e.g.
@@ -606,7 +606,9 @@ def discover_options(
         if isinstance(optimizer, torch.optim.Optimizer):
             opt = optimizer
         elif optimizer is None:
-            opt = torch.optim.Adam(params, lr=lr, foreach=True)
+            # one fused kernel per step where PyTorch has it (CPU, CUDA): the G-steps are many small updates
+            fused = all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
+            opt = torch.optim.Adam(params, lr=lr, fused=True) if fused else torch.optim.Adam(params, lr=lr, foreach=True)
         else:
             opt = optimizer(params, lr=lr)
         sched = lr_scheduler(opt) if lr_scheduler is not None else None

@@ -188,6 +188,8 @@ class TabulatedDDO:
         )
         B, T = mask.shape
         self._actions_checked = False
+        self._categorical, self._pair_action_index = False, None  # set by the first forward pass (_forward)
+        self._flat = self._next_used = None  # per-batch indices, computed when first needed
         self.mask = mask
         self.terminal = terminal_flags(batch, keys.terminal, mask, loss_module.terminal_at_end)
         self.table, self.state_index, self.next_index = tabulate_states(
@@ -258,6 +260,9 @@ class TabulatedDDO:
         remap[used] = torch.arange(used.numel(), device=used.device)
         new.pair_state = remap[self.pair_state[pairs]]
         new.pair_action = self.pair_action[pairs]
+        if self._pair_action_index is not None:
+            new._pair_action_index = self._pair_action_index[pairs]
+        new._flat = new._next_used = None
         if self.meta_table is not None:
             meta_used, (new.meta_index,) = compact([self.meta_index], self.meta_table.batch_size[0])
             new.meta_table = self.meta_table[meta_used]
@@ -278,28 +283,76 @@ class TabulatedDDO:
         """Distinct (state, action) pairs of the valid steps."""
         return self.pair_state.shape[0]
 
-    def _tables(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """``log pi`` per pair ``[P, K]``, termination logits per state ``[U, K]``, meta-control logits ``[M, K]``."""
+    def _flat_indices(self, K: int) -> dict:
+        """Per-batch indices, computed once (per K): ``steps``, the flat positions of the valid steps (``None`` when
+        all are valid); ``pair``, ``next``, ``meta``, the flat positions ``row * K + h`` in the ``[rows, K]`` tables
+        of the pairs, states and meta-control states of the valid steps' ``K`` entries; ``term_steps``, the flat
+        positions of the steps whose ``log_term`` enters the likelihood (all valid steps but each row's last, unless
+        the row is terminal), and ``next_term``, their entries in the state table."""
+        if self._flat is None or self._flat["K"] != K:
+            valid = self.mask.reshape(-1)
+            steps = None if bool(valid.all()) else valid.nonzero().squeeze(1)
+            options = torch.arange(K, device=valid.device)
+
+            def entries(index):
+                index = index.reshape(-1)
+                index = index if steps is None else index[steps]
+                return (index.unsqueeze(1) * K + options).reshape(-1)
+
+            lengths = self.mask.sum(1, keepdim=True)
+            t = torch.arange(self.mask.shape[1], device=valid.device)
+            term_steps = ((t < lengths - 1) | ((t == lengths - 1) & self.terminal.unsqueeze(1))).reshape(-1)
+            term_steps = term_steps.nonzero().squeeze(1)
+            next_term = (self.next_index.reshape(-1)[term_steps].unsqueeze(1) * K + options).reshape(-1)
+            self._flat = dict(
+                K=K, steps=steps, pair=entries(self.pair_index), next=entries(self.next_index),
+                meta=None if self.meta_index is None else entries(self.meta_index), term_steps=term_steps,
+                next_term=next_term,
+            )  # fmt: skip
+        return self._flat
+
+    def _forward(self) -> tuple[tuple[torch.Tensor, torch.Tensor] | torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The networks on the distinct states: ``(pi, term_logits [U, K], meta_logits [M, K] or None)``.
+
+        ``pi`` is ``(logits [U, K, A], logsumexp(logits) [U, K])`` for discrete options (the log-probability of a
+        pair is ``logits[s, :, a] - logsumexp[s]``), the ``[P, K]`` log-probabilities of the pairs for Gaussian ones.
+        """
         keys = self.keys
         out = self.options(self.table.clone(False))
-        log_pi = option_log_probs(
-            out[self.pair_state],
-            self.pair_action,
-            action_space=self.action_space,
-            option_logits_key=keys.option_logits,
-            option_loc_key=keys.option_loc,
-            option_scale_key=keys.option_scale,
-            action_key=keys.action,
-            # the actions are checked once per batch: later calls record the checks and drop them
-            checks=BatchChecks() if self._actions_checked else None,
-        )
-        self._actions_checked = True
-        K = log_pi.shape[-1]
+        if not self._actions_checked:
+            # the actions (and the outputs' layout) are checked once per batch, by the loss's own reading of them
+            log_pi = option_log_probs(
+                out[self.pair_state], self.pair_action, action_space=self.action_space,
+                option_logits_key=keys.option_logits, option_loc_key=keys.option_loc,
+                option_scale_key=keys.option_scale, action_key=keys.action,
+            )  # fmt: skip
+            self._actions_checked = True
+            self._categorical = keys.option_logits in out.keys(include_nested=True) and (
+                self.action_space in ("auto", "categorical")
+            )
+            if self._categorical:
+                A, action = out.get(keys.option_logits).shape[-1], self.pair_action
+                # option_log_probs's reading: one-hot [P, A] (A > 1), or integers [P] or [P, 1]
+                onehot = action.shape == (self.num_pairs, A) and A > 1
+                self._pair_action_index = action.long().argmax(-1) if onehot else action.reshape(-1).long()
+        else:
+            log_pi = None
+        if self._categorical:
+            logits = out.get(keys.option_logits)
+            pi = (logits, torch.logsumexp(logits, -1))
+        else:
+            pi = log_pi if log_pi is not None else option_log_probs(
+                out[self.pair_state], self.pair_action, action_space=self.action_space,
+                option_logits_key=keys.option_logits, option_loc_key=keys.option_loc,
+                option_scale_key=keys.option_scale, action_key=keys.action, checks=BatchChecks(),
+            )  # fmt: skip
+        K = pi[1].shape[-1] if isinstance(pi, tuple) else pi.shape[-1]
         term_logits = out.get(keys.termination_logits)
-        if term_logits.shape != (self.num_states, K):
+        if term_logits is None or term_logits.shape != (self.num_states, K):
+            got = "nothing" if term_logits is None else tuple(term_logits.shape)
             raise ValueError(
                 f"{keys.termination_logits!r} must have shape [..., K] with K = {K} (from the control policies), got "
-                f"{tuple(term_logits.shape)} for a batch of {self.num_states} states."
+                f"{got} for a batch of {self.num_states} states."
             )
         meta = None
         if self.meta_control is not None:
@@ -309,7 +362,18 @@ class TabulatedDDO:
                     f"{keys.meta_logits!r} must have shape [..., K] with K = {K}: the meta-control must choose among "
                     f"the {K} options, got {tuple(meta.shape)}."
                 )
-        return log_pi, term_logits, meta
+        return pi, term_logits, meta
+
+    def _pair_log_pi(self, pi) -> torch.Tensor:
+        """``log pi_h(a | s)`` per pair ``[P, K]`` from :meth:`_forward`'s ``pi``."""
+        if not isinstance(pi, tuple):
+            return pi
+        logits, lse = pi
+        return logits[self.pair_state, :, self._pair_action_index] - lse[self.pair_state]
+
+    def _parameters(self) -> list[torch.Tensor]:
+        params = list(self.options.parameters())
+        return params + ([] if self.meta_control is None else list(self.meta_control.parameters()))
 
     def e_step(self) -> tuple[dict[str, torch.Tensor], Callable[[], torch.Tensor]]:
         """Posterior of the batch under the current parameters.
@@ -317,46 +381,118 @@ class TabulatedDDO:
         Returns:
             ``(record, objective)``: ``record`` holds :class:`~torchrl_options.DDOLoss`'s outputs (detached) for the
             current parameters; ``objective()`` evaluates ``-Q / n_steps`` under the parameters at call time
-            (differentiable), ``Q`` with this E-step's expected counts.
+            (differentiable), ``Q`` with this E-step's expected counts. The E-step's forward pass of the networks
+            serves the first call of ``objective()`` if the parameters are unchanged by then (bit for bit).
+
+        Raises:
+            ValueError: when the networks' outputs hold NaN (or log-probabilities +inf) at a valid step, naming it.
         """
         B, T = self.mask.shape
-        with torch.no_grad():
-            log_pi_pairs, term_logits, meta_logits = self._tables()
-        K = log_pi_pairs.shape[-1]
-        log_pi = log_pi_pairs[self.pair_index].requires_grad_()
-        log_term_states = torch.nn.functional.logsigmoid(term_logits)
-        log_cont_states = torch.nn.functional.logsigmoid(-term_logits)
-        log_term = log_term_states[self.next_index].requires_grad_()
-        log_cont = log_cont_states[self.next_index].requires_grad_()
-        if meta_logits is None:
-            log_eta = torch.full((B, T, K), -math.log(K), dtype=log_pi.dtype, device=log_pi.device)
-        else:
-            log_eta = meta_logits.log_softmax(-1)[self.meta_index]
-        log_eta.requires_grad_()
+        params = self._parameters()
+        snapshot = [p.detach().clone() for p in params]
         with torch.enable_grad():
-            fb = forward_backward(log_pi, log_term, log_cont, log_eta, self.mask, self.terminal)
-            g_pi, g_term, g_cont, g_eta = torch.autograd.grad(fb.log_likelihood.sum(), [log_pi, log_term, log_cont, log_eta])
-        n = self.num_steps
-        ll = fb.log_likelihood.detach().sum()
-        psi_next = torch.sigmoid(term_logits)[self.next_index]
-        record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **ddo_diagnostics(fb.u, fb.v, psi_next, n)}
+            forward = self._forward()
+        with torch.no_grad():
+            pi, term_logits, meta_logits = forward
+            # contiguous tables: the gathers below read whole rows
+            log_pi_pairs = self._pair_log_pi(pi).detach().contiguous()
+            term_logits = term_logits.detach().contiguous()
+            K = log_pi_pairs.shape[-1]
+            log_meta = None if meta_logits is None else meta_logits.detach().log_softmax(-1).contiguous()
+            self._check_outputs(log_pi_pairs, term_logits, log_meta)
 
-        mask = self.mask
-        n_pi = expected_counts(self.pair_index, g_pi, mask, self.num_pairs)
-        n_term = expected_counts(self.next_index, g_term, mask, self.num_states)
-        n_cont = expected_counts(self.next_index, g_cont, mask, self.num_states)
-        n_eta = None
-        if meta_logits is not None:
-            n_eta = expected_counts(self.meta_index, g_eta, mask, self.meta_table.batch_size[0])
+            def per_step(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+                return table.index_select(0, index.reshape(-1)).view(B, T, *table.shape[1:])
+
+            log_pi = per_step(log_pi_pairs, self.pair_index)
+            log_term = per_step(torch.nn.functional.logsigmoid(term_logits), self.next_index)
+            log_cont = per_step(torch.nn.functional.logsigmoid(-term_logits), self.next_index)
+            if log_meta is None:
+                log_eta = torch.full((B, T, K), -math.log(K), dtype=log_pi.dtype, device=log_pi.device)
+            else:
+                log_eta = per_step(log_meta, self.meta_index)
+            # the values were checked above (on the tables) and the mask when the batch was tabulated
+            fb = forward_backward(log_pi, log_term, log_cont, log_eta, self.mask, self.terminal, validate=False)
+            n = self.num_steps
+            ll = fb.log_likelihood.sum()
+            psi_next = per_step(torch.sigmoid(term_logits), self.next_index)
+            diagnostics = ddo_diagnostics(fb.u, fb.v, psi_next, n)
+            record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **diagnostics}
+
+            # the expected counts: the Expectation-Gradient of forward_backward (d log P / d log_pi = u,
+            # d / d log_term = u - w where log_term enters the likelihood, else 0, d / d log_cont = w,
+            # d / d log_eta = v) summed per table row
+            flat = self._flat_indices(K)
+
+            def counts(values: torch.Tensor, entries: torch.Tensor, size: int, steps: torch.Tensor | None):
+                values = values.reshape(B * T, K)
+                values = values if steps is None else values.index_select(0, steps)
+                out = torch.zeros(size * K, dtype=values.dtype, device=values.device)
+                return out.scatter_add_(0, entries, values.reshape(-1)).view(size, K)
+
+            steps, U = flat["steps"], self.num_states
+            n_pi = counts(fb.u, flat["pair"], self.num_pairs, steps)
+            n_term = counts(fb.u - fb.w, flat["next_term"], U, flat["term_steps"])
+            n_cont = counts(fb.w, flat["next"], U, steps)
+            n_eta = None if log_meta is None else counts(fb.v, flat["meta"], self.meta_table.batch_size[0], steps)
+            n_stop = n_term + n_cont
+            if isinstance(pi, tuple):
+                # Q's policy term per state: sum_a N[s, h, a] logits[s, h, a] - (sum_a N[s, h, a]) logsumexp[s, h]
+                n_pi_dense = torch.zeros(pi[0].shape, dtype=n_pi.dtype, device=n_pi.device)
+                n_pi_dense[self.pair_state, :, self._pair_action_index] = n_pi
+                n_pi_state = n_pi_dense.sum(-1)
+                pi_used, state_used = n_pi_dense != 0, n_pi_state != 0
+            else:
+                pi_used = n_pi != 0
+            if n_eta is not None:
+                n_eta_sum = n_eta.sum(-1)
+                eta_used, eta_sum_used = n_eta != 0, n_eta_sum != 0
+        cached = [forward]
 
         def objective() -> torch.Tensor:
-            log_pi_pairs, term_logits, meta_logits = self._tables()
+            forward = cached.pop() if cached else None
+            if forward is None or not all(torch.equal(p, s) for p, s in zip(params, snapshot)):
+                forward = self._forward()
+            pi, term_logits, meta_logits = forward
             # zero counts times a -inf log-probability (an option that cannot take the action) contribute nothing
-            q = torch.where(n_pi != 0, n_pi * log_pi_pairs, 0.0).sum()
-            q = q + (n_term * torch.nn.functional.logsigmoid(term_logits)).sum()
-            q = q + (n_cont * torch.nn.functional.logsigmoid(-term_logits)).sum()
+            if isinstance(pi, tuple):
+                logits, lse = pi
+                q = torch.where(pi_used, n_pi_dense * logits, 0.0).sum()
+                q = q - torch.where(state_used, n_pi_state * lse, 0.0).sum()
+            else:
+                q = torch.where(pi_used, n_pi * pi, 0.0).sum()
+            # n_term log psi + n_cont log(1 - psi), with log(1 - sigmoid(x)) = logsigmoid(x) - x
+            q = q + (n_stop * torch.nn.functional.logsigmoid(term_logits) - n_cont * term_logits).sum()
             if n_eta is not None:
-                q = q + (n_eta * meta_logits.log_softmax(-1)).sum()
+                q = q + torch.where(eta_used, n_eta * meta_logits, 0.0).sum()
+                q = q - torch.where(eta_sum_used, n_eta_sum * torch.logsumexp(meta_logits, -1), 0.0).sum()
             return -q / n
 
         return record, objective
+
+    def _check_outputs(self, log_pi: torch.Tensor, term_logits: torch.Tensor, log_eta: torch.Tensor | None) -> None:
+        """NaN (or +inf log-probabilities) in the tables, at the rows the valid steps read, in one synchronisation;
+        the error names the first valid step reading a bad row."""
+        checks = BatchChecks()
+        tables = [("log pi (from the options' outputs)", log_pi, self.pair_index, False)]
+        tables.append((f"options' {self.keys.termination_logits!r}", term_logits, self.next_index, True))
+        if log_eta is not None:
+            tables.append((f"log eta (meta_control's {self.keys.meta_logits!r})", log_eta, self.meta_index, False))
+        for name, x, index, logits in tables:
+            bad = torch.isnan(x) if logits else torch.isnan(x) | (x == float("inf"))
+            bad = bad.any(-1)
+            if index is self.next_index:  # the states seen only at s_t (e.g. s_0) are not read here
+                bad = bad & self._next_states(x.shape[-1])
+            checks.add(bad.any(), lambda name=name, bad=bad, index=index, logits=logits: (
+                f"{name} holds NaN{'' if logits else ' or +inf'} at valid step "
+                f"(b, t) = {tuple((bad[index] & self.mask).nonzero()[0].tolist())}: the networks' outputs must be "
+                "finite."
+            ))  # fmt: skip
+        checks.raise_if_any()
+
+    def _next_states(self, K: int) -> torch.Tensor:
+        """``[U]`` bool: the states some valid step reaches (``s_{t+1}``)."""
+        if self._next_used is None:
+            used = torch.zeros(self.num_states * K, dtype=torch.bool, device=self.mask.device)
+            self._next_used = used.index_fill_(0, self._flat_indices(K)["next"], True).view(-1, K).any(-1)
+        return self._next_used

@@ -48,8 +48,11 @@ def _ensemble_forward(net: MultiAgentMLP, x: torch.Tensor) -> torch.Tensor:
 
     The same function as ``net(x.unsqueeze(-2).expand(..., K, F))`` (TorchRL vmaps its layers over the stacked
     parameters), written as batched matrix products over the stacked parameters: a few operations instead of a
-    vmap, which dominates the cost of the small networks of options inside an env step. Falls back to ``net`` for
-    layers other than ``Linear`` and parameter-free activations.
+    vmap, which dominates the cost of the small networks of options inside an env step. The first layer is one
+    product for the K networks; each later layer is K products over all inputs at once (a ``[K, N, in]`` by
+    ``[K, in, out]`` ``bmm``, not ``N * K`` vector-matrix products: 2x faster for 2 hidden units on 1851 inputs,
+    18x for ``[64, 64]``). Outputs may be non-contiguous (option-major memory). Falls back to ``net`` for layers
+    other than ``Linear`` and parameter-free activations.
     """
     plan = net.__dict__.get("_ensemble_plan")  # the layers, inspected once per network (not on every step)
     if plan is None:
@@ -68,8 +71,10 @@ def _ensemble_forward(net: MultiAgentMLP, x: torch.Tensor) -> torch.Tensor:
             if first:  # one product for the K networks: [..., F] @ [F, K * out]
                 x = torch.matmul(x, weight.flatten(0, 1).T).unflatten(-1, weight.shape[:2])
                 first = False
-            else:  # [..., K, 1, in] @ [K, in, out]
-                x = torch.matmul(x.unsqueeze(-2), weight.transpose(-1, -2)).squeeze(-2)
+            else:  # [K, N, in] @ [K, in, out] over the N = prod(...) inputs, back to [..., K, out]
+                lead, K = x.shape[:-2], weight.shape[0]
+                x = torch.bmm(x.reshape(lead.numel(), K, x.shape[-1]).transpose(0, 1), weight.transpose(-1, -2))
+                x = x.transpose(0, 1).reshape(*lead, K, weight.shape[1])
             x = x + bias if bias is not None else x
         else:
             x = layer(x)
