@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchrl_options.inference._semiring import end_factor, forward_messages, MAX, total
 from torchrl_options.inference.forward_backward import check_forward_backward_inputs
 
 __all__ = ["ViterbiOutput", "viterbi", "most_likely_options"]
@@ -38,7 +39,9 @@ def viterbi(
     """The most likely joint sequence of options and switches ``argmax_zeta P(zeta, xi)`` (max-product).
 
     Same inputs and model as :func:`~torchrl_options.forward_backward` (Fox et al., 2017, appendix A), with the
-    sums replaced by maxima; O(K) per step. Ties prefer continuing the running option (fewer boundaries).
+    sums replaced by maxima; O(K) per step: the max-plus semiring's scan
+    (:func:`~torchrl_options.inference._semiring.forward_messages`, the reference forward-backward's own step), then
+    backpointers. Ties prefer continuing the running option (fewer boundaries), then the lowest option index.
 
     Args:
         log_pi, log_term, log_cont, log_eta (Tensor): ``[B, T, K]``, as in :func:`forward_backward`.
@@ -65,50 +68,33 @@ def viterbi(
     valid = mask.unsqueeze(-1)
     zero = torch.zeros((), dtype=log_pi.dtype, device=log_pi.device)
     log_pi, log_term, log_cont, log_eta = (torch.where(valid, x, zero) for x in (log_pi, log_term, log_cont, log_eta))
-    last = mask.sum(1) - 1
     switch = log_pi + log_term
     stay = log_pi + log_cont
-
-    delta = log_eta[:, 0]
-    offset = torch.zeros(B, dtype=log_pi.dtype, device=log_pi.device)
-    from_switch, best_prev = [], []
-    for t in range(T - 1):
-        m, arg = (delta + switch[:, t]).max(-1, keepdim=True)
-        start = m + log_eta[:, t + 1]
-        keep = delta + stay[:, t]
-        sw = start > keep
-        new = torch.where(sw, start, keep)
-        # keep the scores bounded on long trajectories; the offsets add back to the log-probability
-        top = new.max(-1, keepdim=True).values
-        top = torch.where(torch.isfinite(top), top, 0.0)
-        step_valid = mask[:, t + 1 : t + 2]
-        delta = torch.where(step_valid, new - top, delta)
-        offset = offset + torch.where(step_valid.squeeze(-1), top.squeeze(-1), 0.0)
-        from_switch.append(sw)
-        best_prev.append(arg)
-    end = log_pi.gather(1, last.view(B, 1, 1).expand(B, 1, K)).squeeze(1)
-    end = end + torch.where(terminal.unsqueeze(-1), log_term.gather(1, last.view(B, 1, 1).expand(B, 1, K)).squeeze(1), 0.0)
-    final, h = (delta + end).max(-1)
-    log_prob = final + offset
+    delta, log_z, switch_in = forward_messages(MAX, switch, stay, log_eta)
+    end, last_idx = end_factor(log_pi, log_term, mask, terminal)
+    log_prob = total(MAX, delta, log_z, end, last_idx, mask)
     if not torch.isfinite(log_prob).all():
         rows = (~torch.isfinite(log_prob)).nonzero().flatten().tolist()
         raise ValueError(f"trajectories {rows[:10]} have zero likelihood under every option sequence.")
 
+    # the scan's choices, recomputed from its messages for all steps at once (the same operations on the same
+    # values): the best option to switch from before step t + 1, and whether each option at t + 1 was started there
+    if T > 1:
+        best_prev = (delta[:, :-1] + switch[:, :-1]).argmax(-1)  # [B, T - 1]
+        from_switch = torch.stack(switch_in, 1) + log_eta[:, 1:] > delta[:, :-1] + stay[:, :-1]  # [B, T - 1, K]
+    last = mask.sum(1) - 1
+    h = (delta.gather(1, last_idx).squeeze(1) + end).argmax(-1)
     options = torch.full((B, T), -1, dtype=torch.long, device=log_pi.device)
     switches = torch.zeros(B, T, dtype=torch.bool, device=log_pi.device)
-    rows = torch.arange(B, device=log_pi.device)
+    switches[:, 0] = True
     for t in range(T - 1, -1, -1):
-        active = t <= last
+        active = t <= last  # steps past a row's end leave the row's pointer where it is
         options[:, t] = torch.where(active, h, -1)
         if t == 0:
-            switches[:, 0] = True
             break
-        sw = from_switch[t - 1][rows, h]
-        prev = best_prev[t - 1].squeeze(-1)
-        # steps past a row's end leave the row's pointer where it is
-        step_in = active & (t <= last)
-        switches[:, t] = step_in & sw
-        h = torch.where(step_in, torch.where(sw, prev, h), h)
+        sw = active & from_switch[:, t - 1].gather(1, h.unsqueeze(1)).squeeze(1)
+        switches[:, t] = sw
+        h = torch.where(sw, best_prev[:, t - 1], h)
     return ViterbiOutput(options=options, switches=switches, log_prob=log_prob)
 
 
