@@ -84,8 +84,11 @@ LOG = LogSemiring()
 MAX = MaxSemiring()
 
 
-def forward_step(sr: Semiring, a: Tensor, switch: Tensor, stay: Tensor, eta_next: Tensor) -> tuple[Tensor, Tensor]:
-    """One forward step ``[..., K] -> [..., K]`` (unnormalised) and the switch mass ``[..., 1]`` that feeds it.
+def forward_step(
+    sr: Semiring, a: Tensor, switch: Tensor, stay: Tensor, eta_next: Tensor, dim: int = -1
+) -> tuple[Tensor, Tensor]:
+    """One forward step ``[..., K] -> [..., K]`` (unnormalised) and the switch mass ``[..., 1]`` that feeds it
+    (options along ``dim``).
 
     Examples:
         >>> import torch
@@ -95,11 +98,13 @@ def forward_step(sr: Semiring, a: Tensor, switch: Tensor, stay: Tensor, eta_next
         >>> n.exp()  # pi = 1: stay 1/2 + switch 1/2 * eta 1/2
         tensor([[0.5000, 0.5000]])
     """
-    s = sr.sum(a + switch, -1)
+    s = sr.sum(a + switch, dim)
     return sr.plus(s + eta_next, a + stay), s
 
 
-def backward_step(sr: Semiring, b: Tensor, switch: Tensor, stay: Tensor, eta_next: Tensor) -> tuple[Tensor, Tensor]:
+def backward_step(
+    sr: Semiring, b: Tensor, switch: Tensor, stay: Tensor, eta_next: Tensor, dim: int = -1
+) -> tuple[Tensor, Tensor]:
     """One backward step (the transpose of :func:`forward_step`) and the start mass ``[..., 1]`` it uses.
 
     Examples:
@@ -109,7 +114,7 @@ def backward_step(sr: Semiring, b: Tensor, switch: Tensor, stay: Tensor, eta_nex
         >>> n.exp()
         tensor([[0.5000, 0.5000]])
     """
-    g = sr.sum(eta_next + b, -1)
+    g = sr.sum(eta_next + b, dim)
     return sr.plus(switch + g, stay + b), g
 
 
