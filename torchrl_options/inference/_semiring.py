@@ -13,7 +13,9 @@ posterior marginals (``d/dlog_pi = u``, ``d/dlog_eta = v``, ``d/dlog_cont = w``)
 max-plus semiring (``oplus`` = max) the total is the Viterbi score and its gradient is the indicator of the best
 latent sequence. :func:`forward_step` and :func:`backward_step` are the one step that the reference
 forward-backward (:mod:`.forward_backward`), Viterbi (:mod:`.viterbi`) and the chunked backend's recovery
-(:mod:`._chunked`) run. The compiled kernels (:mod:`._numba_kernels`, :mod:`._triton_kernels`) are machine code
+(:mod:`._chunked`) run; the hierarchical recursion
+(:mod:`torchrl_options.hierarchy.inference`) takes its semiring (:data:`LOG` or :data:`SAFE_LOG`) as an argument
+too, its marginals by autograd. The compiled kernels (:mod:`._numba_kernels`, :mod:`._triton_kernels`) are machine code
 for the log semiring only and keep their own copy of the step.
 """
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["LOG", "MAX", "Semiring", "backward_step", "end_factor", "forward_messages", "forward_step", "scan_score", "total"]
+__all__ = ["LOG", "MAX", "SAFE_LOG", "Semiring", "backward_step", "end_factor", "forward_messages", "forward_step", "scan_score", "total"]
 
 
 class Semiring:
@@ -46,6 +48,10 @@ class Semiring:
         """``x oplus y``."""
         raise NotImplementedError
 
+    def reduce(self, x: Tensor, dim: int) -> Tensor:
+        """``oplus`` over ``dim`` (removed)."""
+        return self.sum(x, dim).squeeze(dim)
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
@@ -62,6 +68,38 @@ class LogSemiring(Semiring):
     @staticmethod
     def plus(x: Tensor, y: Tensor) -> Tensor:
         return torch.logaddexp(x, y)
+
+    def reduce(self, x: Tensor, dim: int) -> Tensor:
+        return x.logsumexp(dim)
+
+
+class SafeLogSemiring(LogSemiring):
+    """:class:`LogSemiring` whose sum's gradient stays finite (zero) on groups that are all ``-inf``.
+
+    ``torch.logsumexp`` back-propagates ``exp(-inf - (-inf)) = NaN`` there; such groups (states that nothing can
+    reach) only appear when some log-probabilities are exactly ``-inf``. Slower: for such inputs only.
+
+    Examples:
+        >>> import torch
+        >>> x = torch.full((1, 2), -float("inf"), requires_grad=True)
+        >>> SAFE_LOG.reduce(x, -1).sum().backward()
+        >>> x.grad
+        tensor([[0., 0.]])
+    """
+
+    name = "safe_log"
+
+    @staticmethod
+    def sum(x: Tensor, dim: int) -> Tensor:
+        m = x.detach().amax(dim, keepdim=True)
+        m = torch.where(torch.isfinite(m), m, torch.zeros((), dtype=x.dtype, device=x.device))
+        s = (x - m).exp().sum(dim, keepdim=True)
+        pos = s > 0
+        out = m + torch.where(pos, s, torch.ones((), dtype=s.dtype, device=s.device)).log()
+        return torch.where(pos, out, torch.full((), -float("inf"), dtype=x.dtype, device=x.device))
+
+    def reduce(self, x: Tensor, dim: int) -> Tensor:
+        return self.sum(x, dim).squeeze(dim)
 
 
 class MaxSemiring(Semiring):
@@ -81,6 +119,7 @@ class MaxSemiring(Semiring):
 
 
 LOG = LogSemiring()
+SAFE_LOG = SafeLogSemiring()
 MAX = MaxSemiring()
 
 
