@@ -6,7 +6,7 @@ import torch
 
 from _enumeration import latent_sequences
 from torchrl_options.inference import forward_backward, viterbi
-from torchrl_options.inference._semiring import LOG, MAX, scan_score
+from torchrl_options.inference._semiring import chunked_forward_messages, forward_messages, LOG, MAX, scan_score
 
 
 def _inputs(B, T, K, seed):
@@ -53,6 +53,7 @@ def test_both_semirings_against_enumeration(K, T):
     p_pi, _, _, p_eta = torch.autograd.grad(best.sum(), zeroed)
     fb = forward_backward(*x, mask=mask, terminal=terminal, backend="reference")
     vit = viterbi(*x, mask=mask, terminal=terminal)
+    chunked = viterbi(*x, mask=mask, terminal=terminal, backend="chunked")
     for b in range(B):
         L = int(lengths[b])
         ref_logz, ref_max, (_, hs, bs), (u, v, w) = _brute_force(x, b, L, bool(terminal[b]))
@@ -68,6 +69,8 @@ def test_both_semirings_against_enumeration(K, T):
         assert p_pi[b, :L].sum(-1).tolist() == [1.0] * L
         assert (p_eta[b, :L].sum(-1) > 0.5).tolist() == [bool(s) for s in bs] == vit.switches[b, :L].tolist()
         assert (vit.options[b, L:] == -1).all() and not vit.switches[b, L:].any()
+    assert torch.equal(chunked.options, vit.options) and torch.equal(chunked.switches, vit.switches)
+    torch.testing.assert_close(chunked.log_prob, vit.log_prob)
 
 
 def test_viterbi_backpointers_agree_with_the_max_plus_gradient_on_long_rows():
@@ -83,3 +86,29 @@ def test_viterbi_backpointers_agree_with_the_max_plus_gradient_on_long_rows():
     torch.testing.assert_close(vit.log_prob, best.detach())
     assert torch.equal(vit.options, torch.where(mask, p_pi.argmax(-1), -1))
     assert torch.equal(vit.switches, mask & (p_eta.sum(-1) > 0.5))
+
+
+@pytest.mark.parametrize("semiring", [LOG, MAX], ids=["log", "max"])
+@pytest.mark.parametrize("T,L", [(1, 3), (2, 1), (9, 3), (30, 4), (31, 40)])
+def test_chunked_scan_matches_the_sequential_scan(semiring, T, L):
+    """The chunked scan (transfer matrices composed per chunk, a scan across chunks, messages recovered) gives the
+    sequential scan's messages and switch masses in either semiring, chunks that do not divide T included."""
+    log_pi, log_term, log_cont, log_eta = _inputs(3, T, 4, seed=T)
+    switch, stay = log_pi + log_term, log_pi + log_cont
+    ref, _, ref_s = forward_messages(semiring, switch, stay, log_eta)
+    alpha, s = chunked_forward_messages(semiring, switch, stay, log_eta, L)
+    torch.testing.assert_close(alpha, ref)
+    if T > 1:
+        torch.testing.assert_close(s, torch.stack(ref_s, 1))
+
+
+def test_chunked_viterbi_matches_the_reference_on_long_padded_rows():
+    x = _inputs(5, 300, 6, seed=7)
+    mask = torch.arange(300) < torch.tensor([[300], [299], [150], [17], [1]])
+    terminal = torch.tensor([True, False, True, False, True])
+    ref = viterbi(*x, mask=mask, terminal=terminal)
+    out = viterbi(*x, mask=mask, terminal=terminal, backend="chunked")
+    assert torch.equal(out.options, ref.options) and torch.equal(out.switches, ref.switches)
+    torch.testing.assert_close(out.log_prob, ref.log_prob)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        viterbi(*x, backend="numba")

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["LOG", "MAX", "SAFE_LOG", "Semiring", "backward_step", "end_factor", "forward_messages", "forward_step", "scan_score", "total"]
+__all__ = ["LOG", "MAX", "SAFE_LOG", "Semiring", "backward_step", "chunked_forward_messages", "end_factor", "forward_messages", "forward_step", "scan_score", "total"]
 
 
 class Semiring:
@@ -217,3 +217,58 @@ def scan_score(
     alpha, log_z, _ = forward_messages(sr, log_pi + log_term, log_pi + log_cont, log_eta)
     end, last_idx = end_factor(log_pi, log_term, mask, terminal)
     return total(sr, alpha, log_z, end, last_idx, mask)
+
+
+def chunked_forward_messages(
+    sr: Semiring, switch: Tensor, stay: Tensor, log_eta: Tensor, chunk_length: int
+) -> tuple[Tensor, Tensor]:
+    """:func:`forward_messages` by chunks, for any semiring: the messages ``[B, T, K]`` (each normalised by
+    ``oplus``, up to float rounding the same as :func:`forward_messages`') and the switch masses ``[B, T - 1, 1]``.
+
+    The ``T - 1`` transitions are cut into ``C`` chunks of ``L = chunk_length``; each chunk's transfer matrix (the
+    semiring product of its ``L`` steps, in float64 log space) is composed for all chunks at once by
+    :func:`forward_step` with the start option as a batch dimension (``L`` sequential steps), a scan across chunks
+    gives the messages at the chunk starts (``C`` steps), and :func:`forward_step` recovers every message from them,
+    all chunks at once (``L`` steps): about ``2 L + C`` sequential steps instead of ``T``, each of O(K^2) work for
+    the composition.
+
+    Examples:
+        >>> import torch
+        >>> x = torch.randn(2, 30, 3, dtype=torch.float64).log_softmax(-1)
+        >>> ref, _, ref_s = forward_messages(MAX, x, x - 1, x - 2)
+        >>> alpha, s = chunked_forward_messages(MAX, x, x - 1, x - 2, chunk_length=4)
+        >>> torch.allclose(alpha, ref), torch.allclose(s, torch.stack(ref_s, 1))
+        (True, True)
+    """
+    B, T, K = switch.shape
+    L = max(1, min(int(chunk_length), max(T - 1, 1)))
+    C = -(-(T - 1) // L) if T > 1 else 1
+    TP = C * L
+
+    def chunks(x: Tensor) -> Tensor:  # transitions 0 .. T - 2, zero-padded to C L, as [B, C, L, K]
+        return torch.nn.functional.pad(x, (0, 0, 0, TP - x.shape[1])).view(B, C, L, K)
+
+    sw, st, en = chunks(switch[:, : T - 1]), chunks(stay[:, : T - 1]), chunks(log_eta[:, 1:])
+    cd = torch.float64
+    # P[b, c, h, j]: the semiring weight of reaching option h after chunk c from option j at its start
+    P = torch.full((K, K), float("-inf"), dtype=cd, device=switch.device).fill_diagonal_(0.0).expand(B, C, K, K)
+    for i in range(L):
+        P, _ = forward_step(sr, P, *(x[:, :, i, :, None].to(cd) for x in (sw, st, en)), dim=-2)
+    a = log_eta[:, 0].to(cd)
+    a = a - sr.sum(a, -1)
+    starts = [a]
+    for c in range(C - 1):
+        n = sr.reduce(P[:, c] + a.unsqueeze(-2), -1)
+        a = n - sr.sum(n, -1)
+        starts.append(a)
+    a = torch.stack(starts, 1).to(switch.dtype)  # [B, C, K]: the messages at steps 0, L, 2L, ...
+    alphas, switch_in = [], []
+    for i in range(L):
+        alphas.append(a)
+        n, s = forward_step(sr, a, sw[:, :, i], st[:, :, i], en[:, :, i])
+        a = n - sr.sum(n.detach(), -1)
+        switch_in.append(s)
+    alphas.append(a)
+    alpha = torch.stack(alphas[:L], 2).view(B, TP, K)
+    alpha = torch.cat([alpha, alphas[L][:, -1:]], 1)[:, :T]  # the last chunk's end is step C L
+    return alpha, torch.stack(switch_in, 2).view(B, TP, 1)[:, : T - 1]
