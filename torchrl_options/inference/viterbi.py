@@ -104,8 +104,21 @@ def viterbi(
         from_switch = torch.stack(switch_in, 1) + log_eta[:, 1:] > delta[:, :-1] + stay[:, :-1]  # [B, T - 1, K]
     last = mask.sum(1) - 1
     h = (delta.gather(1, last_idx).squeeze(1) + end).argmax(-1)
-    options = torch.full((B, T), -1, dtype=torch.long, device=log_pi.device)
-    switches = torch.zeros(B, T, dtype=torch.bool, device=log_pi.device)
+    if backend == "reference" or T == 1:
+        options, switches = _backtrack(best_prev if T > 1 else None, from_switch if T > 1 else None, last, h)
+    else:
+        options, switches = _backtrack_chunked(best_prev, from_switch, last, h, round(math.sqrt(T)))
+    if backend != "reference":
+        log_prob = _sequence_log_prob(options, switches, log_pi, log_term, log_cont, log_eta, mask, terminal)
+        _check_finite(log_prob)
+    return ViterbiOutput(options=options, switches=switches, log_prob=log_prob)
+
+
+def _backtrack(best_prev: Tensor | None, from_switch: Tensor | None, last: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    """Follows the backpointers from the option ``h`` ``[B]`` at each row's ``last`` step: ``(options, switches)``."""
+    B, T = last.shape[0], 1 if best_prev is None else best_prev.shape[1] + 1
+    options = torch.full((B, T), -1, dtype=torch.long, device=h.device)
+    switches = torch.zeros(B, T, dtype=torch.bool, device=h.device)
     switches[:, 0] = True
     for t in range(T - 1, -1, -1):
         active = t <= last  # steps past a row's end leave the row's pointer where it is
@@ -115,10 +128,42 @@ def viterbi(
         sw = active & from_switch[:, t - 1].gather(1, h.unsqueeze(1)).squeeze(1)
         switches[:, t] = sw
         h = torch.where(sw, best_prev[:, t - 1], h)
-    if backend != "reference":
-        log_prob = _sequence_log_prob(options, switches, log_pi, log_term, log_cont, log_eta, mask, terminal)
-        _check_finite(log_prob)
-    return ViterbiOutput(options=options, switches=switches, log_prob=log_prob)
+    return options, switches
+
+
+def _backtrack_chunked(best_prev: Tensor, from_switch: Tensor, last: Tensor, h: Tensor, L: int) -> tuple[Tensor, Tensor]:
+    """:func:`_backtrack` by chunks of ``L`` transitions: each chunk's pointer map (option at its end to option at
+    its start) composed for all chunks at once, a scan across chunks, then every step recovered in parallel."""
+    B, T1, K = from_switch.shape  # T1 = T - 1 transitions; transition t points from step t + 1 back to step t
+    L = max(1, min(L, T1))
+    C = -(-T1 // L)
+    steps = torch.arange(C * L, device=h.device).view(1, C * L, 1)
+    ident = torch.arange(K, device=h.device).view(1, 1, K)
+    pad = (0, 0, 0, C * L - T1)
+    live = steps < last.view(B, 1, 1)  # past a row's end the pointer map is the identity
+    sw = torch.nn.functional.pad(from_switch, pad) & live  # [B, C L, K]
+    f = torch.where(sw, torch.nn.functional.pad(best_prev, pad[2:]).unsqueeze(-1), ident)
+    f, sw = f.view(B, C, L, K), sw.view(B, C, L, K)
+    G = ident.expand(B, C, K)
+    for i in range(L - 1, -1, -1):
+        G = f[:, :, i].gather(-1, G)
+    ends = [h]  # the option at the end of each chunk, from the last chunk back
+    for c in range(C - 1, 0, -1):
+        ends.append(G[:, c].gather(-1, ends[-1].unsqueeze(-1)).squeeze(-1))
+    g = torch.stack(ends[::-1], 1).unsqueeze(-1)  # [B, C, 1]
+    options = torch.empty(B, C, L + 1, dtype=torch.long, device=h.device)
+    switches = torch.empty(B, C, L, dtype=torch.bool, device=h.device)
+    options[:, :, L] = g.squeeze(-1)
+    for i in range(L - 1, -1, -1):
+        switches[:, :, i] = sw[:, :, i].gather(-1, g).squeeze(-1)
+        g = f[:, :, i].gather(-1, g)
+        options[:, :, i] = g.squeeze(-1)
+    # step c L + i is options[:, c, i]; the end of the last chunk, step C L, is options[:, -1, L]
+    opts = torch.cat([options[:, :, :L].reshape(B, C * L), options[:, -1, L:]], 1)[:, : T1 + 1]
+    valid = torch.arange(T1 + 1, device=h.device) <= last.unsqueeze(1)
+    opts = torch.where(valid, opts, -1)
+    switch = torch.cat([torch.ones(B, 1, dtype=torch.bool, device=h.device), switches.reshape(B, C * L)[:, :T1]], 1)
+    return opts, switch & valid
 
 
 def _check_finite(log_prob: Tensor) -> None:
