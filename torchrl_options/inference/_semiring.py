@@ -157,6 +157,11 @@ def backward_step(
     return sr.plus(switch + g, stay + b), g
 
 
+def _const(x: Tensor) -> Tensor:
+    """``x`` as a constant for autograd (detached only when it needs it: the reference runs without a graph)."""
+    return x.detach() if x.requires_grad else x
+
+
 def forward_messages(sr: Semiring, switch: Tensor, stay: Tensor, log_eta: Tensor) -> tuple[Tensor, Tensor, list[Tensor]]:
     """The forward recursion over ``[B, T, K]`` inputs (padding already zeroed), normalised by ``oplus`` at every
     step: the messages ``[B, T, K]``, the normalisers ``[B, T]`` and the switch masses of steps ``1 .. T - 1``.
@@ -167,12 +172,12 @@ def forward_messages(sr: Semiring, switch: Tensor, stay: Tensor, log_eta: Tensor
     """
     T = switch.shape[1]
     a = log_eta[:, 0]
-    z = sr.sum(a.detach(), -1)
+    z = sr.sum(_const(a), -1)
     a = a - z
     alphas, log_zs, switch_in = [a], [z], []
     for t in range(T - 1):
         n, s = forward_step(sr, a, switch[:, t], stay[:, t], log_eta[:, t + 1])
-        z = sr.sum(n.detach(), -1)
+        z = sr.sum(_const(n), -1)
         a = n - z
         alphas.append(a)
         log_zs.append(z)
@@ -255,18 +260,18 @@ def chunked_forward_messages(
     for i in range(L):
         P, _ = forward_step(sr, P, *(x[:, :, i, :, None].to(cd) for x in (sw, st, en)), dim=-2)
     a = log_eta[:, 0].to(cd)
-    a = a - sr.sum(a, -1)
+    a = a - sr.sum(_const(a), -1)
     starts = [a]
     for c in range(C - 1):
         n = sr.reduce(P[:, c] + a.unsqueeze(-2), -1)
-        a = n - sr.sum(n, -1)
+        a = n - sr.sum(_const(n), -1)
         starts.append(a)
     a = torch.stack(starts, 1).to(switch.dtype)  # [B, C, K]: the messages at steps 0, L, 2L, ...
     alphas, switch_in = [], []
     for i in range(L):
         alphas.append(a)
         n, s = forward_step(sr, a, sw[:, :, i], st[:, :, i], en[:, :, i])
-        a = n - sr.sum(n.detach(), -1)
+        a = n - sr.sum(_const(n), -1)
         switch_in.append(s)
     alphas.append(a)
     alpha = torch.stack(alphas[:L], 2).view(B, TP, K)
