@@ -282,10 +282,10 @@ CONFIGS = [
     ("OptionsDQN env_factory not callable", lambda: _dqn_with(env_factory=3), TypeError, "env_factory must be a callable"),
     ("OptionsDQN config of another type", lambda: _dqn_with(config={"mode": "both"}), TypeError, "config must be an OptionsDQNConfig"),
     ("atari phase1_episodes -5", lambda: AtariConfig(phase1_episodes=-5), ValueError, "phase1_episodes must be an int >= 1"),
-    ("atari gamma 2", lambda: AtariConfig(gamma=2.0), ValueError, "gamma must be a number in [0.0, 1.0]"),
+    ("atari gamma 2", lambda: AtariConfig(gamma=2.0), ValueError, "gamma must be in [0, 1], got 2.0"),
     ("atari ram_encoding", lambda: AtariConfig(ram_encoding="pixels"), ValueError, "ram_encoding must be one of ('one_hot', 'bytes'), got 'pixels'"),
     ("atari hidden_sizes empty", lambda: AtariConfig(hidden_sizes=()), ValueError, "hidden_sizes must be a non-empty list"),
-    ("atari lr 0", lambda: AtariConfig(lr=0), ValueError, "lr must be a number > 0"),
+    ("atari lr 0", lambda: AtariConfig(lr=0), ValueError, "lr must be in (0, inf)"),
     ("atari num_options 0", lambda: AtariConfig(num_options=0), ValueError, "num_options must be an int >= 1"),
     ("atari checkpoint_every -1", lambda: AtariConfig(checkpoint_every=-1), ValueError, "checkpoint_every must be an int >= 0"),
     ("atari frame_skip 1.5", lambda: AtariConfig(frame_skip=1.5), TypeError, "frame_skip must be an int"),
@@ -391,7 +391,7 @@ ATARI = [
     ("sweep.backend", "slurm", "sweep.backend must be one of"),
     ("sweep.num_workers", 0, "sweep.num_workers must be an int >= 1"),
     ("atari.phase1_episodes", 0, "atari.phase1_episodes must be an int >= 1"),
-    ("atari.gamma", 1.5, "atari.gamma must be a number in [0.0, 1.0]"),
+    ("atari.gamma", 1.5, "atari.gamma must be in [0, 1], got 1.5"),
     ("atari.warp", 1, "unknown Atari settings: ['warp']"),
 ]  # fmt: skip
 

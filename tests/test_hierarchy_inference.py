@@ -286,7 +286,8 @@ def test_chunked_recomputes_rows_whose_float64_products_underflow():
     """In trajectory 0, option 0 costs 60 nats per step and entering it 800: over a chunk of 14 steps, the entries
     of the transfer matrix that end in option 0 fall more than 700 nats below the others. The chunked product
     flags that trajectory and the exact recursion redoes it."""
-    from torchrl_options.hierarchy.inference import _forward_chunked, _safe_logsumexp
+    from torchrl_options.hierarchy.inference import _forward_chunked
+    from torchrl_options.inference._semiring import SAFE_LOG
 
     B, T, A = 2, 200, 2
     action = torch.zeros(B, T, dtype=torch.long)
@@ -300,7 +301,7 @@ def test_chunked_recomputes_rows_whose_float64_products_underflow():
     mask = torch.ones(B, T, dtype=torch.bool)
     terminal = torch.tensor([False, False])
     raw = _forward_chunked(action, [log_pi], [log_term], [log_cont], log_eta, mask, terminal, A, [2], None, None,
-                           _safe_logsumexp)  # fmt: skip
+                           SAFE_LOG)  # fmt: skip
     assert torch.isnan(raw[0]) and torch.isfinite(raw[1])
     args = (action, [log_pi], [log_term], [log_cont], log_eta, mask, terminal)
     chunked = hierarchical_forward_backward(*args, backend="chunked").log_likelihood

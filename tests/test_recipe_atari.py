@@ -1,8 +1,10 @@
 """The Atari RAM recipe end to end with the smoke preset: outputs, resuming, and the Ray backend."""
 import csv
+import dataclasses
 import importlib.util
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -387,7 +389,19 @@ def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
 
 
 def test_agent_config_takes_the_shared_settings_by_name():
-    """``OptionsDQNConfig`` is built from the ``AtariConfig`` settings of the same name (not copied field by field)."""
+    """``OptionsDQNConfig`` is built from the ``AtariConfig`` settings of the same name (not copied field by field):
+    both derive from ``DQNHyperParameters``, which declares and checks them once."""
+    from torchrl_options.agents import DQNHyperParameters, OptionsDQNConfig
+
+    shared = {f.name for f in dataclasses.fields(DQNHyperParameters)}
+    assert shared <= {f.name for f in dataclasses.fields(AtariConfig)}
+    assert set(AtariConfig().dqn_settings()) == shared
+    # one check, one message, for the agent and the recipe
+    for bad in ({"gamma": 1.5}, {"discount_per": "option"}, {"batch_size": 0}, {"lr": "fast"}):
+        with pytest.raises((ValueError, TypeError)) as agent_err:
+            OptionsDQNConfig(**bad)
+        with pytest.raises(type(agent_err.value), match=re.escape(str(agent_err.value))):
+            AtariConfig(**bad)
     config = AtariConfig(lr=0.02, gamma=0.5, batch_size=7, buffer_size=99, double_dqn=True, eps_init=0.4, eps_end=0.2,
                          eps_annealing_frames=0, hidden_sizes=(8, 8, 8), max_episode_steps=20, noop_max=0,
                          learning_starts=3, frames_per_batch=5, updates_per_batch=2, hard_update_interval=9)
@@ -397,8 +411,9 @@ def test_agent_config_takes_the_shared_settings_by_name():
         assert (dqn.lr, dqn.gamma, dqn.batch_size, dqn.buffer_size, dqn.double_dqn, dqn.eps_init, dqn.eps_end) == (
             0.02, 0.5, 7, 99, True, 0.4, 0.2)
         assert (dqn.learning_starts, dqn.frames_per_batch, dqn.updates_per_batch, dqn.hard_update_interval) == (3, 5, 2, 9)
-        assert dqn.hidden_sizes == (8, 8, 8) and dqn.eps_annealing_frames == 1 and dqn.seed == 5
+        assert dqn.hidden_sizes == (8, 8, 8) and dqn.eps_annealing_frames == 0 and dqn.seed == 5
         assert dqn.mode == "actions" and dqn.num_envs == 1
+        assert agent.exploration.annealing_num_steps == 1  # 0 frames: annealed after the first
     finally:
         _close(agent)
 

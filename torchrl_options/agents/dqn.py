@@ -44,20 +44,24 @@ from torchrl_options.transforms.option_executor import OptionExecutor
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["OptionsDQNConfig", "OptionsDQN"]
+__all__ = ["DQNHyperParameters", "OptionsDQNConfig", "OptionsDQN"]
 
 Mode = Literal["actions", "options", "both"]
 
 
 @dataclass
-class OptionsDQNConfig:
-    """Hyper-parameters of :class:`OptionsDQN`. Frames are primitive env steps summed over the batched envs.
+class DQNHyperParameters:
+    """The DQN settings that :class:`OptionsDQNConfig` shares with the recipes' schemas (the Atari recipe's
+    :class:`~torchrl_options.experiments.atari.AtariConfig` derives from this class, its Hydra schema included):
+    one declaration and one check of each. Frames are primitive env steps summed over the batched envs.
+
+    Every field is a plain Hydra/OmegaConf type (``str`` for the choices, checked here), so that a subclass can be
+    registered in Hydra's ``ConfigStore`` as it is.
 
     Attributes:
-        mode: ``"actions"`` (plain DQN), ``"options"`` (the policy chooses among options only) or ``"both"``.
         num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
             ``parallel=True``) with the executor outside, evaluating the options once for all envs.
-        total_frames: training budget of :meth:`OptionsDQN.train`.
+        parallel: batch the envs in a ``ParallelEnv`` instead of a ``SerialEnv``.
         frames_per_batch: collector batch size.
         buffer_size: replay buffer capacity, in decisions.
         batch_size: decisions per gradient step.
@@ -69,10 +73,77 @@ class OptionsDQNConfig:
             option) or ``"decision"`` (every decision is one time-step: rewards summed, ``R + gamma max Q``);
             see :mod:`torchrl_options.data.smdp`.
         hidden_sizes: hidden layers of the default MLP Q-network.
-        eps_init, eps_end, eps_annealing_frames: linear epsilon-greedy schedule, over frames.
+        eps_init, eps_end, eps_annealing_frames: linear epsilon-greedy schedule, over frames (``0`` frames: as
+            ``1``, ``eps_end`` after the first frame).
+        hard_update_interval: gradient steps between two copies of the target network (``target_update="hard"``).
+        double_dqn: use double DQN targets.
+        device: device of the networks and the replay buffer (the envs stay on their own device).
+
+    Examples:
+        >>> DQNHyperParameters(gamma=0.9).gamma
+        0.9
+        >>> DQNHyperParameters(discount_per="option")
+        Traceback (most recent call last):
+        ...
+        ValueError: discount_per must be one of ('step', 'decision'), got 'option'.
+    """
+
+    num_envs: int = 1
+    parallel: bool = False
+    frames_per_batch: int = 64
+    buffer_size: int = 100_000
+    batch_size: int = 64
+    learning_starts: int = 64
+    updates_per_batch: int = 4
+    lr: float = 1e-3
+    gamma: float = 0.99
+    discount_per: str = "step"
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    eps_annealing_frames: int = 5_000
+    hard_update_interval: int = 100
+    double_dqn: bool = False
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
+        from torchrl_options.discovery._validation import check_int
+
+        if self.discount_per not in ("step", "decision"):
+            raise ValueError(f"discount_per must be one of ('step', 'decision'), got {self.discount_per!r}.")
+        for name, minimum in (("num_envs", 1), ("frames_per_batch", 1), ("buffer_size", 1), ("batch_size", 1),
+                              ("learning_starts", 0), ("updates_per_batch", 0), ("eps_annealing_frames", 0),
+                              ("hard_update_interval", 1)):  # fmt: skip
+            check_int(getattr(self, name), name, minimum=minimum)
+        for name, hi in (("lr", math.inf), ("gamma", 1), ("eps_init", 1), ("eps_end", 1)):
+            _check_number(self, name, 0, hi, lo_open=name == "lr", hi_open=name == "lr")
+        sizes = self.hidden_sizes
+        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
+            isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
+        ):
+            raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
+
+
+def _check_number(config: Any, name: str, lo: float, hi: float, *, lo_open: bool, hi_open: bool) -> None:
+    value = getattr(config, name)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__}).")
+    if not (lo < value if lo_open else lo <= value) or not (value < hi if hi_open else value <= hi) or math.isnan(value):
+        interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+        raise ValueError(f"{name} must be in {interval}, got {value}.")
+
+
+@dataclass
+class OptionsDQNConfig(DQNHyperParameters):
+    """Hyper-parameters of :class:`OptionsDQN`: the fields of :class:`DQNHyperParameters` (``num_envs``, ``lr``,
+    ``gamma``, ``batch_size``, ...) and those below.
+
+    Attributes:
+        mode: ``"actions"`` (plain DQN), ``"options"`` (the policy chooses among options only) or ``"both"``.
+        total_frames: training budget of :meth:`OptionsDQN.train`.
         target_update: ``"hard"`` (copy every ``hard_update_interval`` gradient steps) or ``"soft"``
             (Polyak averaging with ``soft_update_eps``).
-        double_dqn: use double DQN targets.
         loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"``.
         max_grad_norm: gradient clipping (``None`` to disable).
         greedy_options: options act greedily instead of sampling their action.
@@ -94,29 +165,12 @@ class OptionsDQNConfig:
         seed: seeds the envs, the collector and the option executors. Network initialisation and exploration draw
             from torch's global generator, as TorchRL's modules do: call ``torch.manual_seed`` before building the
             agent for a reproducible run (the recipes do).
-        device: device of the networks and the replay buffer (the envs stay on their own device).
     """
 
     mode: Mode = "both"
-    num_envs: int = 1
-    parallel: bool = False
     total_frames: int = 10_000
-    frames_per_batch: int = 64
-    buffer_size: int = 100_000
-    batch_size: int = 64
-    learning_starts: int = 64
-    updates_per_batch: int = 4
-    lr: float = 1e-3
-    gamma: float = 0.99
-    discount_per: Literal["step", "decision"] = "step"
-    hidden_sizes: tuple[int, ...] = (64, 64)
-    eps_init: float = 1.0
-    eps_end: float = 0.05
-    eps_annealing_frames: int = 5_000
     target_update: Literal["hard", "soft"] = "hard"
-    hard_update_interval: int = 100
     soft_update_eps: float = 0.995
-    double_dqn: bool = False
     loss_function: str = "l2"
     max_grad_norm: float | None = 10.0
     greedy_options: bool = False
@@ -125,38 +179,23 @@ class OptionsDQNConfig:
     max_decisions: int | None = None
     observation_key: NestedKey = "observation"
     seed: int = 0
-    device: str = "cpu"
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
         from torchrl_options.discovery._validation import check_int
 
-        choices = {"mode": ("actions", "options", "both"), "discount_per": ("step", "decision"),
-                   "target_update": ("hard", "soft"), "loss_function": ("l2", "l1", "smooth_l1")}  # fmt: skip
+        super().__post_init__()
+        choices = {"mode": ("actions", "options", "both"), "target_update": ("hard", "soft"),
+                   "loss_function": ("l2", "l1", "smooth_l1")}  # fmt: skip
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}.")
-        for name, minimum in (("num_envs", 1), ("total_frames", 0), ("frames_per_batch", 1), ("buffer_size", 1),
-                              ("batch_size", 1), ("learning_starts", 0), ("updates_per_batch", 0),
-                              ("eps_annealing_frames", 1), ("hard_update_interval", 1), ("seed", 0)):  # fmt: skip
-            check_int(getattr(self, name), name, minimum=minimum)
+        check_int(self.total_frames, "total_frames", minimum=0)
+        check_int(self.seed, "seed", minimum=0)
         check_int(self.max_decisions, "max_decisions", minimum=1, allow_none=True)
-        for name, lo, hi, lo_open, hi_open in (("lr", 0, math.inf, True, True), ("gamma", 0, 1, False, False),
-                                               ("eps_init", 0, 1, False, False), ("eps_end", 0, 1, False, False),
-                                               ("soft_update_eps", 0, 1, True, True)):  # fmt: skip
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__}).")
-            if not (lo < value if lo_open else lo <= value) or not (value < hi if hi_open else value <= hi) or math.isnan(value):
-                interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-                raise ValueError(f"{name} must be in {interval}, got {value}.")
+        _check_number(self, "soft_update_eps", 0, 1, lo_open=True, hi_open=True)
         if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
             raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
-        sizes = self.hidden_sizes
-        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
-            isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
-        ):
-            raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
 
 
 @dataclass
@@ -358,7 +397,7 @@ class OptionsDQN:
             spec,
             eps_init=config.eps_init,
             eps_end=config.eps_end,
-            annealing_num_steps=config.eps_annealing_frames,
+            annealing_num_steps=max(config.eps_annealing_frames, 1),
         ).to(self.device)
         self.policy = TensorDictSequential(self.actor, self.exploration)
 

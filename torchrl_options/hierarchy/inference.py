@@ -32,6 +32,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchrl_options.inference._semiring import LOG, SAFE_LOG
+
 __all__ = [
     "BACKENDS",
     "HierarchyPosterior",
@@ -174,25 +176,6 @@ def _describe(x) -> str:
     if isinstance(x, Tensor):
         return f"a {x.dtype} tensor of shape {tuple(x.shape)}"
     return type(x).__name__
-
-
-def _safe_logsumexp(x: Tensor, dim: int) -> Tensor:
-    """``logsumexp`` whose gradient stays finite (zero) on groups that are all ``-inf``.
-
-    ``torch.logsumexp`` back-propagates ``exp(-inf - (-inf)) = NaN`` there; such groups (stacks that no option
-    can reach) only appear when some log-probabilities are exactly ``-inf``.
-    """
-    m = x.detach().amax(dim, keepdim=True)
-    m = torch.where(torch.isfinite(m), m, torch.zeros((), dtype=x.dtype, device=x.device))
-    s = (x - m).exp().sum(dim)
-    m = m.squeeze(dim)
-    pos = s > 0
-    out = m + torch.where(pos, s, torch.ones((), dtype=s.dtype, device=s.device)).log()
-    return torch.where(pos, out, torch.full((), -float("inf"), dtype=x.dtype, device=x.device))
-
-
-def _fast_logsumexp(x: Tensor, dim: int) -> Tensor:
-    return x.logsumexp(dim)
 
 
 def hierarchical_forward_backward(
@@ -370,9 +353,10 @@ def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, siz
     log_term = [clean(x) for x in log_term]
     log_cont = [clean(x) for x in log_cont]
     log_eta = clean(log_eta)
-    # -inf entries (impossible choices) need the NaN-free logsumexp; finite inputs take the fused one
+    # the recursion's semiring: -inf entries (impossible choices) need the NaN-free log-sum-exp; finite inputs take
+    # the fused one
     inputs = [*log_pi, *log_term, *log_cont, log_eta]
-    lse = _fast_logsumexp if all(bool(torch.isfinite(x).all()) for x in inputs) else _safe_logsumexp
+    sr = LOG if all(bool(torch.isfinite(x).all()) for x in inputs) else SAFE_LOG
     if backend == "auto":
         S, D = len(_nodes(sizes)), len(sizes)
         step = B * S * S * (D + 1)
@@ -385,9 +369,9 @@ def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, siz
     args = (A, sizes)
     if backend != "chunked":
         run = _forward_dense if backend == "dense" else _forward_structured
-        return run(action, log_pi, log_term, log_cont, log_eta, mask, terminal, *args, node_bias, start_bias, lse)
+        return run(action, log_pi, log_term, log_cont, log_eta, mask, terminal, *args, node_bias, start_bias, sr)
     ll = _forward_chunked(action, log_pi, log_term, log_cont, log_eta, mask, terminal, *args, node_bias, start_bias,
-                          lse)  # fmt: skip
+                          sr)  # fmt: skip
     bad = ~torch.isfinite(ll)
     if bool(bad.any()):  # underflow in the float64 transfer matrices (or a zero likelihood): the exact recursion
         rows = bad.nonzero().squeeze(-1)
@@ -396,13 +380,13 @@ def _forward(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, siz
         picked = [None if b is None else {k: pick(v) for k, v in b.items()} for b in (node_bias, start_bias)]
         redo = _forward_structured(
             pick(action), [pick(x) for x in log_pi], [pick(x) for x in log_term], [pick(x) for x in log_cont],
-            pick(log_eta), pick(mask), pick(terminal), *args, *picked, lse,
+            pick(log_eta), pick(mask), pick(terminal), *args, *picked, sr,
         )  # fmt: skip
         ll = ll.index_put((rows,), redo)
     return ll
 
 
-def _dense_transitions(action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, lse,
+def _dense_transitions(action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, sr,
                        factors=False):  # fmt: skip
     """The S x S log transition matrices of all steps at once: ``(log alpha_0 [B, S], trans [B, T - 1, S, S] or
     None, root_end [B, T, S])``, with ``alpha_{t+1}(n') = sum_n alpha_t(n) exp(trans[t, n, n'])`` and
@@ -488,31 +472,31 @@ def _dense_transitions(action, log_pi, log_term, log_cont, log_eta, mask, A, siz
     trans = None
     if T > 1:
         trans = pop[:, :-1, :, None, :] + push[:, 1:, None, :, :] + log_through
-        trans = lse(trans, -1) + emit[:, 1:, None, :]  # [B, T - 1, S, S]
+        trans = sr.reduce(trans, -1) + emit[:, 1:, None, :]  # [B, T - 1, S, S]
     # the first message, the transitions, and the end factor (every option on the stack terminates at s_{t+1})
     return push[:, 0, :, D] + emit[:, 0], trans, pop[..., D]
 
 
-def _forward_dense(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, lse):
+def _forward_dense(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, sr):
     """The dense transitions (:func:`_dense_transitions`), then one log-space matrix-vector product per step."""
     B, T = action.shape
     alpha, trans, root_end = _dense_transitions(
-        action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, lse
+        action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, sr
     )
     # per-step views by unbind: indexing [:, t] would make autograd allocate a full-size gradient per step
     trans = trans.unbind(1) if T > 1 else ()
     # Padded steps run on the zeroed inputs (finite) and are dropped below: no per-step masking needed.
-    z = lse(alpha, -1)
+    z = sr.reduce(alpha, -1)
     alpha = alpha - z.unsqueeze(-1)
     alphas, log_zs = [alpha], [z]
     for t in range(T - 1):
-        new = lse(alpha.unsqueeze(-1) + trans[t], 1)
-        z = lse(new, -1)
+        new = sr.reduce(alpha.unsqueeze(-1) + trans[t], 1)
+        z = sr.reduce(new, -1)
         alpha = new - z.unsqueeze(-1)
         alphas.append(alpha)
         log_zs.append(z)
-    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: lse(
-        _at(torch.stack(alphas, 1), last) + _at(root_end, last), -1), lse)
+    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: sr.reduce(
+        _at(torch.stack(alphas, 1), last) + _at(root_end, last), -1), sr)
 
 
 def _chunk_length(steps: int) -> int:
@@ -521,7 +505,7 @@ def _chunk_length(steps: int) -> int:
 
 
 def _forward_chunked(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias,
-                     lse, chunk_length=None):  # fmt: skip
+                     sr, chunk_length=None):  # fmt: skip
     """Time-parallel (chunked) product of the dense transition matrices, in float64 probability space.
 
     The ``T - 1`` transitions are cut into ``C`` chunks of ``L`` steps. *Compose* (``L`` sequential batched matrix
@@ -540,7 +524,7 @@ def _forward_chunked(action, log_pi, log_term, log_cont, log_eta, mask, terminal
     """
     B, T = action.shape
     log_alpha, (pop, push, through), root_end = _dense_transitions(
-        action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, lse, factors=True
+        action, log_pi, log_term, log_cont, log_eta, mask, A, sizes, node_bias, start_bias, sr, factors=True
     )
     cd = torch.float64
     last = mask.sum(1) - 1
@@ -627,7 +611,7 @@ def _at(x: Tensor, last: Tensor) -> Tensor:
     return x.gather(1, index).squeeze(1)
 
 
-def _total(mask: Tensor, terminal: Tensor, log_z: Tensor, root_at, lse) -> Tensor:
+def _total(mask: Tensor, terminal: Tensor, log_z: Tensor, root_at, sr) -> Tensor:
     """log P: the per-step normalisers over each row's valid steps, times, for terminal rows, the probability
     that every option on the stack terminates at ``s_T`` (``root_at(last)``; the normalised message sums to 1)."""
     last = mask.sum(1) - 1
@@ -635,7 +619,7 @@ def _total(mask: Tensor, terminal: Tensor, log_z: Tensor, root_at, lse) -> Tenso
     return total + torch.where(terminal, root_at(last), 0.0)
 
 
-def _forward_structured(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, lse):
+def _forward_structured(action, log_pi, log_term, log_cont, log_eta, mask, terminal, A, sizes, node_bias, start_bias, sr):
     """The recursion over the tree of stack shapes, O(S) per step (more, smaller operations per step)."""
     B, T = action.shape
     D = len(sizes)
@@ -691,17 +675,17 @@ def _forward_structured(action, log_pi, log_term, log_cont, log_eta, mask, termi
         """After step t: the mass reaching the root (top option terminated) and each option's resume mass."""
         ret, resume = {}, {}
         for s in reversed(shapes):
-            parts = [alpha[s]] + [lse(ret[c], -1) for c in children[s]]
+            parts = [alpha[s]] + [sr.reduce(ret[c], -1) for c in children[s]]
             m = _lse(parts)
             ret[s] = m + term[s][t]
             resume[s] = m + cont[s][t]
-        return lse(ret[top], -1), resume
+        return sr.reduce(ret[top], -1), resume
 
     def _lse(xs: list[Tensor]) -> Tensor:
-        return xs[0] if len(xs) == 1 else lse(torch.stack(xs, 0), 0)
+        return xs[0] if len(xs) == 1 else sr.reduce(torch.stack(xs, 0), 0)
 
     def normalise(alpha: dict) -> tuple[dict, Tensor]:
-        z = lse(torch.cat([a.reshape(B, -1) for a in alpha.values()], -1), -1)
+        z = sr.reduce(torch.cat([a.reshape(B, -1) for a in alpha.values()], -1), -1)
         return {s: a - z.view(B, *([1] * (a.ndim - 1))) for s, a in alpha.items()}, z
 
     alpha, z = normalise(push(0, None, None))
@@ -713,4 +697,4 @@ def _forward_structured(action, log_pi, log_term, log_cont, log_eta, mask, termi
             break
         alpha, z = normalise(push(t + 1, root, resume))
         log_zs.append(z)
-    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: _at(torch.stack(roots, 1), last), lse)
+    return _total(mask, terminal, torch.stack(log_zs, 1), lambda last: _at(torch.stack(roots, 1), last), sr)

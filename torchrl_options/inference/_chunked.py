@@ -12,7 +12,8 @@ all chunks (and all batch rows) at once:
 2. *Scan* (``C`` sequential steps, float64): the forward messages at the chunk starts, ``alpha_{(c+1)L} ~ P_c alpha_{cL}``,
    and the backward messages, ``beta_{cL} ~ P_c^T beta_{(c+1)L}``, in log space.
 3. *Recover* (``L`` sequential steps, parallel over chunks): every per-step message, by the reference's own
-   normalised log-space recursion (in the inputs' dtype) started from the chunk boundaries.
+   normalised log-space step (:func:`~torchrl_options.inference._semiring.forward_step` and ``backward_step`` in
+   the log semiring, in the inputs' dtype) started from the chunk boundaries.
 4. *Check*: each chunk's recovered message one step past its end must agree with the next boundary of the scan
    (in log space, to a tolerance set by the dtype, for entries above e^-600 of the message). Rows that fail (a transfer matrix underflowed
    in the rescaled probability space, which can happen with -inf entries and near-deterministic probabilities),
@@ -33,6 +34,8 @@ import math
 
 import torch
 from torch import Tensor
+
+from torchrl_options.inference._semiring import backward_step, forward_step, LogSemiring
 
 __all__ = ["chunked_forward_backward", "choose_chunk_length"]
 
@@ -57,6 +60,17 @@ def _lse(x: Tensor, dim: int) -> Tensor:
     m = x.amax(dim, keepdim=True)
     m = torch.where(m == _NEG_INF, 0.0, m)
     return (x - m).exp_().sum(dim, keepdim=True).log_().add_(m)
+
+
+class _InPlaceLogSemiring(LogSemiring):
+    """The log semiring with :func:`_lse` (in place, fewer temporaries) as its sum."""
+
+    @staticmethod
+    def sum(x: Tensor, dim: int) -> Tensor:
+        return _lse(x, dim)
+
+
+_LOG = _InPlaceLogSemiring()
 
 
 def chunked_forward_backward(
@@ -161,15 +175,13 @@ def chunked_forward_backward(
     a = fwd[:C].to(dt)
     for i in range(L):
         alpha[:, i] = a
-        s = _lse(a + lc4[:, i], 1)
-        n = torch.logaddexp(s + le4[:, i], a + ld4[:, i])
+        n, _ = forward_step(_LOG, a, lc4[:, i], ld4[:, i], le4[:, i], dim=1)
         a = n - _lse(n, 1)
     bad = _mismatch(a, fwd[1:], dt)
     beta = torch.empty(C, L, K, B, dtype=dt, device=dev)
     b = bwd[1:].to(dt)
     for i in range(L - 1, -1, -1):
-        g = _lse(b + le4[:, i], 1)
-        n = torch.logaddexp(lc4[:, i] + g, ld4[:, i] + b)
+        n, _ = backward_step(_LOG, b, lc4[:, i], ld4[:, i], le4[:, i], dim=1)
         b = n - _lse(n, 1)
         beta[:, i] = b
     bad = bad | _mismatch(b, bwd[:C], dt) | ~torch.isfinite(log_lik.view(B))

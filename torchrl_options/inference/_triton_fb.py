@@ -9,6 +9,9 @@ traffic is one read of the four inputs per pass, one write and one read of ``alp
 The arithmetic is the reference's (same recursion, same normalisation, log space throughout, no clipping), so -inf
 entries are exact zeros and long trajectories stay finite. Triton's interpreter (``TRITON_INTERPRET=1``) runs the
 same kernel on the CPU, which is how it is tested without a GPU.
+
+The kernel keeps its own copy of the step of :mod:`._semiring` (the one scan that the reference forward-backward,
+Viterbi and the chunked backend share): it is machine code for the log semiring only, as is the Numba kernel.
 """
 from __future__ import annotations
 

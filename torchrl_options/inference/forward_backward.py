@@ -11,6 +11,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from torchrl_options.inference._semiring import backward_step, end_factor, forward_messages, LOG, total
+
 __all__ = [
     "BACKENDS",
     "ForwardBackwardOutput",
@@ -157,41 +159,23 @@ def _forward_backward_reference(
     terminal: Tensor,
     row_ids: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The reference: normalised log-space forward-backward, one step at a time, O(K) per step.
+    """The reference: normalised log-space forward-backward, one step at a time, O(K) per step: the log semiring's
+    :func:`~torchrl_options.inference._semiring.forward_step` and ``backward_step``, shared with :func:`viterbi`.
 
     Works on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w)``. ``row_ids`` (the
     rows' indices in the caller's batch) only serve the zero-likelihood error message.
     """
-    B, T, K = log_pi.shape
-    lengths = mask.sum(1)
-    last = lengths - 1
+    T = log_pi.shape[1]
+    last = mask.sum(1) - 1
     # After step t the option either terminates (A) or continues (C); both include pi_h(a_t | s_t).
     switch = log_pi + log_term
     stay = log_pi + log_cont
-    last_idx = last.view(B, 1, 1).expand(B, 1, K)
-    end_term = torch.where(terminal.unsqueeze(-1), log_term.gather(1, last_idx).squeeze(1), 0.0)
-    end = log_pi.gather(1, last_idx).squeeze(1) + end_term  # [B, K]: factor of the last valid step
+    end, last_idx = end_factor(log_pi, log_term, mask, terminal)  # [B, K]: factor of the last valid step
 
     # Forward: alpha_t = log phi_t normalised over h; log_z_t the per-step normalisers (their sum is log P).
-    a = log_eta[:, 0]
-    z = a.logsumexp(-1, keepdim=True)
-    a = a - z
-    alphas, log_zs, switch_in = [a], [z], []
-    for t in range(T - 1):
-        # The transition is rank one plus diagonal: all options feed one "switch" mass (s), redistributed by eta.
-        s = (a + switch[:, t]).logsumexp(-1, keepdim=True)
-        n = torch.logaddexp(s + log_eta[:, t + 1], a + stay[:, t])
-        z = n.logsumexp(-1, keepdim=True)
-        a = n - z
-        alphas.append(a)
-        log_zs.append(z)
-        switch_in.append(s)
-    alpha = torch.stack(alphas, 1)
-    log_z = torch.cat(log_zs, 1)
+    alpha, log_z, switch_in = forward_messages(LOG, switch, stay, log_eta)
     valid_next = mask[:, 1:]
-    log_z = torch.cat([log_z[:, :1], torch.where(valid_next, log_z[:, 1:], 0.0)], 1)
-    alpha_last = alpha.gather(1, last_idx).squeeze(1)
-    log_likelihood = log_z.sum(1) + (alpha_last + end).logsumexp(-1)
+    log_likelihood = total(LOG, alpha, log_z, end, last_idx, mask)
     if not torch.isfinite(log_likelihood).all():
         rows = (~torch.isfinite(log_likelihood)).nonzero().flatten()
         _raise_zero_likelihood((rows if row_ids is None else row_ids[rows]).tolist())
@@ -200,14 +184,11 @@ def _forward_backward_reference(
     betas = [None] * T
     b = end - end.logsumexp(-1, keepdim=True)  # t = T - 1 is either each row's last step or padding
     betas[T - 1] = b
-    switch_out = [None] * (T - 1)
     for t in range(T - 2, -1, -1):
-        g = (log_eta[:, t + 1] + b).logsumexp(-1, keepdim=True)
-        rec = torch.logaddexp(switch[:, t] + g, stay[:, t] + b)
+        rec, _ = backward_step(LOG, b, switch[:, t], stay[:, t], log_eta[:, t + 1])
         b = torch.where((last == t).unsqueeze(-1), end, rec)
         b = b - b.logsumexp(-1, keepdim=True)
         betas[t] = b
-        switch_out[t] = g
     beta = torch.stack(betas, 1)
 
     valid = mask.unsqueeze(-1)

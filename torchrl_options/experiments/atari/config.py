@@ -5,13 +5,18 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
+from torchrl_options.agents.dqn import DQNHyperParameters
+
 __all__ = ["AtariConfig", "store_atari_config"]
 
 
 @dataclass
-class AtariConfig:
+class AtariConfig(DQNHyperParameters):
     """Settings of one Atari RAM cell: the schema of the ``atari`` section of ``recipes/config/atari_ram.yaml``
-    (:func:`store_atari_config`).
+    (:func:`store_atari_config`). The DQN settings (``lr``, ``gamma``, ``batch_size``, ...) are the fields of
+    :class:`~torchrl_options.agents.DQNHyperParameters`, which the agent's
+    :class:`~torchrl_options.agents.OptionsDQNConfig` derives from too: declared and checked once, with the paper's
+    defaults here; the other fields are the cell's own.
 
     Env: ``env_semantics="project"`` (default) builds the game from ``frame_skip``, ``repeat_action_probability``,
     ``noop_max``, ``episodic_life``, ``clip_rewards``, ``max_episode_steps`` (see
@@ -34,14 +39,15 @@ class AtariConfig:
 
     ``discount_per``: ``"step"`` (default, the SMDP target ``R + gamma^k max Q`` with rewards discounted inside an
     option) or ``"decision"`` (the authors' HDQN: an option's rewards summed undiscounted, one ``gamma`` per
-    decision); see :class:`~torchrl_options.agents.OptionsDQNConfig`.
+    decision); see :class:`~torchrl_options.agents.DQNHyperParameters`.
 
-    DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): ``hidden_sizes``, ``gamma``, ``eps_init``,
-    ``eps_end``, ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``,
-    ``frames_per_batch``, ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``num_envs`` games
+    DQN (paper: epsilon 0.05, gamma 0.85, three dense tanh layers): the fields of
+    :class:`~torchrl_options.agents.DQNHyperParameters` (``hidden_sizes``, ``gamma``, ``eps_init``, ``eps_end``,
+    ``eps_annealing_frames``, ``lr``, ``batch_size``, ``buffer_size``, ``learning_starts``, ``frames_per_batch``,
+    ``updates_per_batch``, ``hard_update_interval``, ``double_dqn``, ``device``), ``num_envs`` games
     batched in a ``SerialEnv`` (``ParallelEnv`` with ``parallel``; one gymnasium ``SyncVectorEnv`` with
     ``vector_env``, the fastest on few cores: see :func:`~torchrl_options.envs.atari.make_atari_ram_env`; the
-    greedy demonstrations stay one game at a time), ``device``, ``fused_adam`` (Adam as one fused kernel: the
+    greedy demonstrations stay one game at a time), ``fused_adam`` (Adam as one fused kernel: the
     same algorithm, several times faster per update on the one-hot network; ``benchmarks/bench_dqn_update.py``).
 
     Greedy evaluation (off by default; the paper plots the mean return of rollouts of the learned policy): each
@@ -82,25 +88,16 @@ class AtariConfig:
     ddo_lr: float = 1e-3
     ddo_m_steps: int = 1
     demo_random_episodes: int = 10
-    # DQN
+    # DQN: the fields of DQNHyperParameters, the paper's defaults where they differ from the agent's
     hidden_sizes: tuple[int, ...] = (64, 64, 64)
     gamma: float = 0.85
-    discount_per: str = "step"
     eps_init: float = 0.05
-    eps_end: float = 0.05
     eps_annealing_frames: int = 1
     lr: float = 1e-4
-    batch_size: int = 64
-    buffer_size: int = 100_000
     learning_starts: int = 1000
-    frames_per_batch: int = 64
-    updates_per_batch: int = 4
     hard_update_interval: int = 1000
-    double_dqn: bool = False
-    num_envs: int = 1
-    parallel: bool = False
+    # the cell's own DQN settings
     vector_env: bool = False
-    device: str = "cpu"
     fused_adam: bool = False
     # greedy evaluation (the paper's measure): every eval_every episodes of a cell (0: off)
     eval_every: int = 0
@@ -117,21 +114,17 @@ class AtariConfig:
     _INTS: ClassVar[dict[str, tuple[int, bool]]] = {
         "frame_skip": (1, False), "noop_max": (0, False), "max_episode_steps": (1, True), "phase1_episodes": (1, False),
         "phase3_episodes": (1, False), "num_demonstrations": (1, False), "demo_max_steps": (1, False),
-        "num_options": (1, True), "ddo_iterations": (0, False), "ddo_batch_size": (1, True), "batch_size": (1, False),
-        "buffer_size": (1, False), "learning_starts": (0, False), "frames_per_batch": (1, False),
-        "updates_per_batch": (0, False), "hard_update_interval": (1, False), "num_envs": (1, False),
-        "eval_every": (0, False), "eval_episodes": (1, False), "checkpoint_every": (0, False),
-        "option_frames_max_steps": (1, False), "torch_threads": (1, True), "eps_annealing_frames": (0, False),
-        "demo_random_episodes": (0, False),
+        "num_options": (1, True), "ddo_iterations": (0, False), "ddo_batch_size": (1, True), "eval_every": (0, False),
+        "eval_episodes": (1, False), "checkpoint_every": (0, False), "option_frames_max_steps": (1, False),
+        "torch_threads": (1, True), "demo_random_episodes": (0, False),
     }  # fmt: skip
-    _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {
-        "repeat_action_probability": (0.0, 1.0), "gamma": (0.0, 1.0), "eps_init": (0.0, 1.0), "eps_end": (0.0, 1.0),
-    }  # fmt: skip
+    _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {"repeat_action_probability": (0.0, 1.0)}
 
     def __post_init__(self) -> None:
         from torchrl_options.discovery._validation import check_int
         from torchrl_options.discovery.discover import _check_m_steps
 
+        super().__post_init__()  # the DQN settings
         _check_m_steps(self.ddo_m_steps, name="ddo_m_steps")  # refused when the settings are read, not after phase 1
         for name, (minimum, allow_none) in self._INTS.items():
             check_int(getattr(self, name), name, minimum=minimum, allow_none=allow_none)
@@ -139,12 +132,10 @@ class AtariConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
                 raise ValueError(f"{name} must be a number in [{lo}, {hi}], got {value!r}.")
-        for name in ("lr", "ddo_lr"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
-                raise ValueError(f"{name} must be a number > 0, got {value!r}.")
+        if isinstance(self.ddo_lr, bool) or not isinstance(self.ddo_lr, (int, float)) or not 0 < self.ddo_lr < float("inf"):
+            raise ValueError(f"ddo_lr must be a number > 0, got {self.ddo_lr!r}.")
         for name, choices in (("ram_encoding", ("one_hot", "bytes")), ("option_encoding", ("one_hot", "bytes")),
-                              ("env_semantics", ("project", "paper")), ("discount_per", ("step", "decision"))):
+                              ("env_semantics", ("project", "paper"))):
             if getattr(self, name) not in choices:
                 raise ValueError(f"{name} must be one of {choices}, got {getattr(self, name)!r}.")
         for name in ("hidden_sizes", "options_num_cells"):
@@ -216,18 +207,16 @@ class AtariConfig:
         )
 
     def dqn_settings(self) -> dict[str, Any]:
-        """The settings :class:`~torchrl_options.agents.OptionsDQNConfig` also has, by name (``lr``, ``gamma``,
-        ``batch_size``, ...): the agent's config is built from them, not copied field by field.
+        """The :class:`~torchrl_options.agents.DQNHyperParameters` fields (``lr``, ``gamma``, ``batch_size``, ...),
+        which the agent's :class:`~torchrl_options.agents.OptionsDQNConfig` has too: the agent's config is built
+        from them.
 
         Examples:
             >>> settings = AtariConfig(lr=0.01).dqn_settings()
             >>> settings["lr"], "phase1_episodes" in settings
             (0.01, False)
         """
-        from torchrl_options.agents import OptionsDQNConfig
-
-        shared = {f.name for f in fields(OptionsDQNConfig)}
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
+        return {f.name: getattr(self, f.name) for f in fields(DQNHyperParameters)}
 
     def options_for(self, game: str) -> int:
         from torchrl_options.envs.atari import PAPER_NUM_OPTIONS

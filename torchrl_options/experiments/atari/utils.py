@@ -46,7 +46,6 @@ def _make_agent(game: str, config: AtariConfig, seed: int, mode: str, options=No
     settings.update(
         num_envs=1 if config.vector_env else config.num_envs,  # a vector env is batched already
         hidden_sizes=tuple(config.hidden_sizes),
-        eps_annealing_frames=max(int(config.eps_annealing_frames), 1),
     )
     dqn_config = OptionsDQNConfig(
         **settings, mode=mode, total_frames=10**12, greedy_options=greedy_options,
