@@ -204,7 +204,10 @@ KEPT_GRIDWORLD_FIGURES = [
     ("four_rooms_default", {"A": "0.260 [0.097, 0.423]", "H1u - A": "+0.170 [-0.033, +0.373] | no evidence",
                             "H1s - A": "+0.150 [+0.019, +0.281] | ahead"}),
     ("four_rooms_dqn64", {"A": "0.350 [0.284, 0.416]", "H1u - A": "+0.090 [-0.211, +0.391] | no evidence"}),
+    ("four_rooms_paper_1000", {"A": "0.409 [0.356, 0.461]", "H1u": "0.777 [0.693, 0.860]",
+                               "H1u - A": "+0.368 [+0.262, +0.474] | ahead"}),
 ]
+SEEDS = {"four_rooms_paper_1000": 15, "four_rooms_ppo_15seeds": 15}  # the others: 3
 KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
     ("four_rooms_ppo_15seeds", {"A": "0.517 [0.471, 0.563]", "H1u": "0.713 [0.665, 0.760]",
                                 "H2u": "1.038 [0.967, 1.109]", "H1u - A": "+0.196 [+0.131, +0.261] | ahead",
@@ -212,7 +215,7 @@ KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's r
 ]
 NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
-                    "+0.427 [+0.302, +0.552]"}
+                    "+0.427 [+0.302, +0.552]", "+0.368 [+0.262, +0.474]"}
 
 
 @pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
@@ -228,7 +231,7 @@ def test_kept_results_back_the_readme(tmp_path, folder, expected):
         (tmp_path / "results.csv").write_text(f.read())
     text = write_summary(tmp_path / "results.csv", tmp_path / "out", "kept", {"final_window": 100, "smooth_window": 50})
     for name, figure in expected.items():
-        seeds = 15 if folder in dict(KEPT_PPO_FIGURES) else 3
+        seeds = SEEDS.get(folder, 3)
         row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | {seeds} |"
         assert any(line.startswith(row) and figure in line for line in text.splitlines()), (name, figure)
 
