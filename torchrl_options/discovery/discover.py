@@ -425,9 +425,10 @@ def discover_options(
             separate networks per option (the paper's four rooms: 2 tanh units). ``num_cells="auto"`` chooses the
             width among :data:`~torchrl_options.discovery.width.AUTO_WIDTHS` (4 and 8) by the log-likelihood of
             20% of the trajectories held out while each width is fitted on the rest (with the restarts), then
-            trains the chosen fit on all the trajectories; about 2.5 times the cost of one width. The result's
-            ``num_cells`` and ``width_log_likelihoods`` say what was chosen and why, and its ``history`` holds
-            the chosen width's iterations on the training share followed by those on all the trajectories.
+            trains the chosen fit on all the trajectories; about twice the CPU time of one width on the planted
+            suite. The result's ``num_cells`` and ``width_log_likelihoods`` say what was chosen and why, and its
+            ``history`` holds the chosen width's iterations on the training share followed by those on all the
+            trajectories.
         init (str): ``"random"`` (default) or ``"kmeans"`` (pre-clustering of state-action pairs, appendix B).
         num_iterations (int): the most iterations (E-steps). Defaults to 1000 (the stopping rule usually ends
             training sooner).
@@ -527,6 +528,10 @@ def discover_options(
     if options is None and action_space == "categorical" and num_actions is None:
         num_actions = int(data.get(action_key)[mask].max()) + 1
         logger.info("num_actions not given: using max(action) + 1 = %d", num_actions)
+    if init not in ("random", "kmeans"):
+        raise ValueError(f"init must be 'random' or 'kmeans', got {init!r}.")
+    if isinstance(meta_control, str) and meta_control not in ("uniform", "learned"):
+        raise ValueError(f"meta_control must be 'uniform', 'learned' or a module, got {meta_control!r}.")
     if isinstance(num_cells, str):
         if not fresh_modules or buffer is not None or data.batch_size[0] < 5:
             raise ValueError(
@@ -545,8 +550,10 @@ def discover_options(
         )  # fmt: skip
 
         def fit(part: TensorDictBase, width: int) -> DiscoveryResult:
-            return discover_options(part, num_options, num_cells=width, init=init, restarts=restarts,
-                                    restart_iterations=restart_iterations, desc=f"{desc} {width} units", **common)  # fmt: skip
+            return discover_options(
+                part, num_options, num_cells=width, init=init, restarts=restarts,
+                restart_iterations=restart_iterations, desc=f"{desc} {width} units", **common,
+            )  # fmt: skip
 
         width, first, scores = select_width(
             fit, data, widths=AUTO_WIDTHS, generator=generator, action_space=action_space, action_key=action_key
@@ -556,13 +563,12 @@ def discover_options(
         final = discover_options(data, num_options, options=first.options, num_cells=width, restarts=1, desc=desc,
                                  **common)  # fmt: skip
         final.restart_log_likelihoods = first.restart_log_likelihoods
+        disagreement = restart_disagreement(first.restart_log_likelihoods)
+        if disagreement and disagreement not in final.warnings:
+            final.warnings.append(disagreement)
         final.history = first.history + final.history
         final.num_cells, final.width_log_likelihoods = width, scores
         return final if return_info else final.options
-    if init not in ("random", "kmeans"):
-        raise ValueError(f"init must be 'random' or 'kmeans', got {init!r}.")
-    if isinstance(meta_control, str) and meta_control not in ("uniform", "learned"):
-        raise ValueError(f"meta_control must be 'uniform', 'learned' or a module, got {meta_control!r}.")
 
     def start(table: TabulatedDDO | None):
         """Fresh modules (drawn from the global RNG), optionally pre-clustered, with their optimizer."""

@@ -132,7 +132,8 @@ def select_width(
         >>> from torchrl_options.discovery import discover_options
         >>> obs = torch.randn(10, 9, 2)
         >>> data = TensorDict({"observation": obs[:, :-1], "action": (obs[:, :-1, 0] > 0).long(),
-        ...                    "next": {"observation": obs[:, 1:]}, ("collector", "mask"): torch.ones(10, 8, dtype=torch.bool)}, [10, 8])
+        ...                    "next": {"observation": obs[:, 1:]},
+        ...                    ("collector", "mask"): torch.ones(10, 8, dtype=torch.bool)}, [10, 8])
         >>> fit = lambda d, w: discover_options(d, 2, num_cells=w, num_iterations=5, progress=False, return_info=True)
         >>> width, result, scores = select_width(fit, data, generator=torch.Generator().manual_seed(0))
         >>> width in scores, sorted(scores)
