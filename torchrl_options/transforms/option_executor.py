@@ -447,7 +447,8 @@ class OptionExecutor(Transform):
         that call is made here with no other work (collectors already run without gradients).
         """
         state = self.__dict__.get("_direct_call_state")
-        if state is not None and state[1] is not None and state[0] is self.options:
+        options = self.options
+        if state is not None and state[1] is not None and state[0] is options:
             inputs = [tensordict.get(key, None) for key in self._options_in_keys]
             for x in inputs:
                 if x is None:
@@ -456,9 +457,9 @@ class OptionExecutor(Transform):
                 try:
                     if torch.is_grad_enabled():
                         with torch.no_grad():
-                            out = self.options.module(*inputs)
+                            out = options.module(*inputs)
                     else:
-                        out = self.options.module(*inputs)
+                        out = options.module(*inputs)
                 except RuntimeError as err:
                     raise self._options_error(tensordict, err) from err
                 return out[state[1]], out[state[2]]
