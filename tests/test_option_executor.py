@@ -466,6 +466,32 @@ def test_options_writing_nan_raise(logits, term, match):
         env.step(td)  # lands on cell 2
 
 
+@pytest.mark.parametrize(
+    "logits, term, match",
+    [
+        ([[NAN, 0.0], [0.0, 0.0]], [0.0, 0.0], r"NaN in 'option_logits'"),
+        ([[0.0, 0.0], [0.0, 0.0]], [NAN, 0.0], r"NaN in 'termination_logits'"),
+        ([[INF, -INF], [0.0, 0.0]], [0.0, 0.0], r"without a valid softmax"),
+        # infinities of both signs in different rows (and terminations) are valid for argmax: no error
+        ([[INF, 0.0], [-INF, 0.0]], [INF, -INF], None),
+    ],
+)
+def test_greedy_options_writing_nan_raise(logits, term, match):
+    """With ``greedy=True`` the options act by argmax: NaN (or a row holding +inf and -inf) raises at the step
+    landing there, infinite logits elsewhere do not."""
+    options = TensorDictModule(NaNOptions(logits, term), ["position"], ["option_logits", "termination_logits"])
+    env = Corridor(L, max_steps=50).append_transform(OptionExecutor(options, num_options=K, greedy=True))
+    td = env.reset()
+    td["action"] = torch.tensor(RIGHT)
+    td = env.step_mdp(env.step(td))  # cell 1: fine
+    td["action"] = torch.tensor(RIGHT)
+    if match is None:
+        assert int(env.step(td)["next", "position"]) == 2
+    else:
+        with pytest.raises(ValueError, match=match):
+            env.step(td)  # lands on cell 2
+
+
 def test_infinite_logits_that_are_valid_do_not_raise():
     """-inf masks an action, +inf / -inf termination logits mean always / never: all valid."""
     env = Corridor(L, max_steps=50).append_transform(

@@ -368,6 +368,8 @@ class OptionExecutor(Transform):
                 K=K,
                 n_aug=shift + K,
                 shape=spec.shape,
+                logits_shape=torch.Size((*spec.shape, K, A)),
+                term_shape=torch.Size((*spec.shape, K)),
                 n=n,
                 dtype=spec.dtype,
                 # augmented action -> the option it starts at a decision, -1 for a primitive action
@@ -387,9 +389,40 @@ class OptionExecutor(Transform):
         self, tensordict: TensorDictBase, consts: _StepConstants
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Each option's action ``[*batch, K]`` drawn at the state of ``tensordict``, and the termination logits
-        ``[*batch, K]`` there."""
-        with torch.no_grad():
-            logits, term = self._call_options(tensordict)
+        ``[*batch, K]`` there.
+
+        Per-state code (it runs in every step and reset): a fixed sequence of small tensor ops; the shapes are
+        checked in full only when they differ from the expected ones.
+        """
+        logits, term = self._run_options(tensordict)
+        if logits.shape != consts.logits_shape or term.shape != consts.term_shape:
+            logits, term = self._reshape_outputs(logits, term, consts)
+        if self.greedy:
+            actions = logits.argmax(-1)
+            probs = logits  # its sums are NaN if a row has a NaN (or both infinities)
+        else:
+            # inverse-CDF draw, one uniform per env and option (the same draws as torch.rand into a float32
+            # buffer, whatever the options' dtype); right=True never picks a zero-probability action, the clamp
+            # keeps rounding (a CDF ending below u) from giving A
+            probs = logits.softmax(-1).cumsum(-1)  # the CDF: a row is NaN if its softmax is
+            u = consts.u_actions.uniform_(generator=consts.generator)
+            if u.dtype is not probs.dtype:
+                u = u.to(probs.dtype)
+            actions = torch.searchsorted(probs, u, right=True).squeeze(-1).clamp_max_(consts.A - 1)
+        if consts.deferred is None:
+            # one sum per output tells whether anything is NaN; a false alarm (from infinite logits of both signs)
+            # is cleared by the exact check
+            s = float(probs.sum()) + float(term.sum())
+            if s != s:
+                self._check_options_outputs(consts, probs, logits, term)
+        else:
+            self._check_options_outputs(consts, probs, logits, term)
+        return (actions if actions.dtype is consts.dtype else actions.to(consts.dtype)), term
+
+    def _reshape_outputs(
+        self, logits: torch.Tensor, term: torch.Tensor, consts: _StepConstants
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The options' outputs checked and reshaped to ``[*batch, K, A]`` and ``[*batch, K]``."""
         K, A, shape = consts.K, consts.A, consts.shape
         if logits.shape[-2:] != (K, A) or logits.shape[:-2].numel() != shape.numel():
             raise ValueError(
@@ -405,34 +438,50 @@ class OptionExecutor(Transform):
             logits = logits.reshape(*shape, K, A)
         if term.shape[:-1] != shape:
             term = term.reshape(*shape, K)
-        if self.greedy:
-            actions = logits.argmax(-1)
-            total = logits.sum(-1)  # NaN if a row has a NaN
-        else:
-            # inverse-CDF draw, one uniform per env and option; right=True never picks a zero-probability action,
-            # the clamp keeps rounding (a CDF ending below u) from giving A
-            cdf = logits.softmax(-1).cumsum(-1)
-            u = _uniform(consts.u_actions, cdf.dtype, consts.generator)
-            actions = torch.searchsorted(cdf, u, right=True).squeeze(-1).clamp_max_(A - 1)
-            total = cdf[..., -1]  # NaN if a row's softmax is: a NaN, a +inf or only -inf in the row
-        self._check_options_outputs(consts, total, logits, term)
-        return (actions if actions.dtype is consts.dtype else actions.to(consts.dtype)), term
+        return logits, term
+
+    def _run_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """The options' ``(option_logits, termination_logits)`` at the state of ``tensordict``, without gradients.
+
+        Once :meth:`_direct_call` has shown that ``options.module`` can be called on the input tensors directly,
+        that call is made here with no other work (collectors already run without gradients).
+        """
+        state = self.__dict__.get("_direct_call_state")
+        options = self.options
+        if state is not None and state[1] is not None and state[0] is options:
+            inputs = [tensordict.get(key, None) for key in self._options_in_keys]
+            for x in inputs:
+                if x is None:
+                    break  # the full path says which input is missing
+            else:
+                try:
+                    if torch.is_grad_enabled():
+                        with torch.no_grad():
+                            out = options.module(*inputs)
+                    else:
+                        out = options.module(*inputs)
+                except RuntimeError as err:
+                    raise self._options_error(tensordict, err) from err
+                return out[state[1]], out[state[2]]
+        with torch.no_grad():
+            return self._call_options(tensordict)
 
     def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         try:
             return self._call_options_unchecked(tensordict)
         except RuntimeError as err:  # e.g. options built for another observation size: say so at the door
-            keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
-            shapes = {
-                key: tuple(tensordict.get(key).shape)
-                for key in keys
-                if isinstance(tensordict.get(key, None), torch.Tensor)
-            }
-            raise ValueError(
-                f"OptionExecutor: the options module failed on the env's observations (shapes {shapes}, batch "
-                f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
-                f"torch said: {err}"
-            ) from err
+            raise self._options_error(tensordict, err) from err
+
+    def _options_error(self, tensordict: TensorDictBase, err: RuntimeError) -> ValueError:
+        keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
+        shapes = {
+            key: tuple(tensordict.get(key).shape) for key in keys if isinstance(tensordict.get(key, None), torch.Tensor)
+        }
+        return ValueError(
+            f"OptionExecutor: the options module failed on the env's observations (shapes {shapes}, batch "
+            f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
+            f"torch said: {err}"
+        )
 
     def _call_options_unchecked(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         keys = self._options_in_keys
@@ -501,16 +550,16 @@ class OptionExecutor(Transform):
 
     # ---------------------------------------------------------------- checks
     def _check_options_outputs(
-        self, consts: _StepConstants, total: torch.Tensor, logits: torch.Tensor, term: torch.Tensor
+        self, consts: _StepConstants, probs: torch.Tensor, logits: torch.Tensor, term: torch.Tensor
     ) -> None:
-        """Raises if a row of ``total`` (NaN for an unusable row of action logits) or ``term`` is NaN.
+        """Raises (CPU) or flags for a later step (CUDA) a NaN in ``term`` or an unusable row of action logits.
 
-        On the CPU one sum tells whether anything is NaN (a false alarm, from ``+inf`` and ``-inf`` termination
-        logits, is cleared by the exact check); on CUDA the exact flag is recorded for a later step.
+        ``probs`` is the CDF of the action draw (its last column is NaN for a row whose softmax is not defined) or,
+        with ``greedy=True``, the logits (a row sums to NaN if it has a NaN, or infinities of both signs).
         """
+        total = probs.sum(-1) if self.greedy else probs[..., -1]
         if consts.deferred is None:
-            s = float((total + term).sum())
-            if s != s and (torch.isnan(total).any() or torch.isnan(term).any()):
+            if torch.isnan(total).any() or torch.isnan(term).any():
                 raise ValueError(self._nan_message(logits, term))
         else:
             consts.deferred.add(_NAN, torch.isnan(total).any() | torch.isnan(term).any())
@@ -552,7 +601,8 @@ class OptionExecutor(Transform):
         included) in the same kernel, so valid actions cost no extra op. On CUDA, where an out-of-range index would
         be a device-side assert, the action is clamped into range and the fault flagged (see the class docstring).
         """
-        index = action.reshape(-1)
+        flat = action.dim() == 1
+        index = action if flat else action.reshape(-1)
         if index.dtype is not torch.int64:
             index = index.long()
         if consts.deferred is not None:
@@ -566,7 +616,7 @@ class OptionExecutor(Transform):
             if lo < 0 or hi >= consts.n_aug:
                 raise ValueError(self._range_message((lo, hi))) from None
             raise
-        return option.view(action.shape)
+        return option if flat else option.view(action.shape)
 
     def _range_message(self, got: tuple[int, int] | None) -> str:
         n_aug = self.num_augmented_actions
@@ -597,12 +647,16 @@ class OptionExecutor(Transform):
         action = tensordict.get(self.action_key, None)
         if action is None:
             raise ValueError(f"OptionExecutor: the input of env.step has no action entry {self.action_key!r}.")
-        running = self._state(tensordict, self.option_key)
-        option_actions = self._state(tensordict, self.option_actions_key)
+        running = tensordict.get(self.option_key, None)
+        option_actions = tensordict.get(self.option_actions_key, None)
+        if running is None or option_actions is None:
+            self._state(tensordict, self.option_key)  # raises, naming the missing entry
+            self._state(tensordict, self.option_actions_key)
         consts = self.__dict__.get("_consts")
         if consts is None or consts.device != action.device:
             consts = self._constants(action.device)
-        self._raise_deferred(consts)
+        if consts.deferred is not None:
+            self._raise_deferred(consts)
         started = self._decode(action, consts)  # also the range check
         decision = running < 0
         if self.lower_option_key is not None:
@@ -640,7 +694,9 @@ class OptionExecutor(Transform):
         option_actions, term_logits = self._evaluate_options(next_tensordict, consts)
         # option -1 (primitive) reads column K-1: its draw is not used, the option stays -1
         term_logits = _pick(term_logits, option, consts)
-        u = _uniform(consts.u_terminations, term_logits.dtype, consts.generator)
+        u = consts.u_terminations.uniform_(generator=consts.generator)  # float32: the same draws for any dtype
+        if u.dtype is not term_logits.dtype:
+            u = u.to(term_logits.dtype)
         terminate = u < term_logits.sigmoid()
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
@@ -649,7 +705,7 @@ class OptionExecutor(Transform):
         done = next_tensordict.get(self.done_key, None)
         if done is None:
             raise ValueError(f"OptionExecutor: the env's output has no done entry {self.done_key!r} (done_key).")
-        ends = terminate | done.reshape(terminate.shape)
+        ends = terminate | (done if done.shape == terminate.shape else done.reshape(terminate.shape))
         next_tensordict.set(self.option_key, torch.where(ends, consts.no_option, option))
         next_tensordict.set(self.option_actions_key, option_actions)
         next_tensordict.set(self.executed_action_key, tensordict.get(self.executed_action_key))
@@ -669,7 +725,7 @@ class OptionExecutor(Transform):
         self._raise_deferred(consts, wait=True)  # resets already wait for the device (done.any())
         option_actions, _ = self._evaluate_options(tensordict_reset, consts)
         reset = tensordict.get(_reset_key(self.done_key), None) if tensordict is not None else None
-        if reset is not None:
+        if reset is not None and reset.shape != shape:
             reset = reset.reshape(shape)
         # a new episode starts with a decision; the records are empty (-1 / False) until its first step. Only
         # envs flagged by "_reset" change (TorchRL also keeps the entries of the other envs after _reset)
@@ -684,11 +740,13 @@ class OptionExecutor(Transform):
             if prev is None:
                 value = torch.full(shape, default, dtype=dtype, device=device)
             else:
-                value = torch.where(reset, default, prev.reshape(shape))
+                value = torch.where(reset, default, prev if prev.shape == shape else prev.reshape(shape))
             tensordict_reset.set(key, value)
         prev = tensordict.get(self.option_actions_key, None) if reset is not None else None
         if prev is not None:
-            option_actions = torch.where(reset.unsqueeze(-1), option_actions, prev.reshape(option_actions.shape))
+            if prev.shape != option_actions.shape:
+                prev = prev.reshape(option_actions.shape)
+            option_actions = torch.where(reset.unsqueeze(-1), option_actions, prev)
         tensordict_reset.set(self.option_actions_key, option_actions)
         if consts.deferred is not None:
             consts.deferred.publish()
@@ -762,6 +820,8 @@ class _StepConstants(NamedTuple):
     K: int  # options
     n_aug: int  # policy-facing actions
     shape: torch.Size  # action shape (the env's batch)
+    logits_shape: torch.Size  # [*shape, K, A]: the expected option logits
+    term_shape: torch.Size  # [*shape, K]: the expected termination logits
     n: int  # envs in the batch
     dtype: torch.dtype  # action dtype
     decode: torch.Tensor  # [n_aug]: augmented action -> option started (-1: primitive)
@@ -771,12 +831,6 @@ class _StepConstants(NamedTuple):
     u_terminations: torch.Tensor  # [*shape] float32 buffer of the termination draws
     deferred: _DeferredFlags | None  # CUDA: bad-input flags read without a sync (None: checked at once)
     generator: torch.Generator | None  # None: torch's default generator
-
-
-def _uniform(buffer: torch.Tensor, dtype: torch.dtype, generator: torch.Generator | None) -> torch.Tensor:
-    """Uniforms of the buffer's shape drawn into ``buffer`` (float32: the same draws whatever the options' dtype)."""
-    u = buffer.uniform_(generator=generator)
-    return u if u.dtype is dtype else u.to(dtype)
 
 
 def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> torch.Tensor:
