@@ -158,7 +158,7 @@ def numba_expectation_gradient(
     g = grad_ll.detach().to(u.dtype).contiguous().numpy()
     lengths = mask.sum(1).numpy()
     term = terminal.contiguous().numpy()
-    outs = tuple(torch.empty((4, *u.shape), dtype=u.dtype).unbind(0))  # every entry is written by the kernel
+    outs = tuple(torch.empty_like(u) for _ in range(4))  # every entry is written by the kernel
     args = (g, u.numpy(), v.numpy(), w.numpy(), lengths, term, *(x.numpy() for x in outs))
     _run_rows(k.grad_rows, args, np.full(B, T))
     return outs
