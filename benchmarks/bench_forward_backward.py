@@ -85,8 +85,10 @@ def other_kernels(path):
     if path not in _OTHER_KERNELS:
         import importlib.util
 
-        spec = importlib.util.spec_from_file_location(f"_bench_kernels_{len(_OTHER_KERNELS)}", path)
+        name = "_bench_kernels_" + "".join(c if c.isalnum() else "_" for c in os.path.abspath(path))
+        spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module  # Numba's cache finds the module by name
         spec.loader.exec_module(module)
         _OTHER_KERNELS[path] = module
     return _OTHER_KERNELS[path]

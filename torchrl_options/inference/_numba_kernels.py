@@ -167,10 +167,13 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
                 me = max(me, np.float64(le[b, t + 1, h]))
             if me == -np.inf:
                 me = 0.0
-            m = -np.inf
+            md = -np.inf
+            mc = -np.inf
             for h in range(K):
                 p = np.float64(lp[b, t, h])
-                m = max(m, max(p + np.float64(lc[b, t, h]), p + np.float64(lt[b, t, h]) + me))
+                md = max(md, p + np.float64(lc[b, t, h]))
+                mc = max(mc, p + np.float64(lt[b, t, h]))
+            m = max(md, mc + me)  # = max_h max(p + lc, p + lt + me): rounding is monotonic
             if m == -np.inf:
                 m = 0.0
             shift[t] = m
@@ -215,12 +218,10 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
                 es += E[t, h]
                 ssup |= sup[h] & (C[t, h] > 0.0)
             z = s * es + q
-            for h in range(K):
-                n[h] = s * E[t, h] + A[t, h] * D[t, h]
             flag |= not (z >= zfloor)
             rz = 1.0 / z
             for h in range(K):
-                a = n[h] * rz
+                a = (s * E[t, h] + A[t, h] * D[t, h]) * rz
                 A[t + 1, h] = a
                 sh = (ssup & (E[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
                 sup[h] = sh
@@ -300,13 +301,11 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
                 cs += C[t, h]
                 gsup |= sup[h] & (e > 0.0)
             z = cs * g + r  # = sum_h (C g + D b), as in the forward pass
-            for h in range(K):
-                n[h] = C[t, h] * g + D[t, h] * bv[h]
             flag |= not (z >= zfloor)
             rz = 1.0 / z
             S = 0.0
             for h in range(K):
-                x = n[h] * rz
+                x = (C[t, h] * g + D[t, h] * bv[h]) * rz
                 sh = (gsup & (C[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
                 sup[h] = sh
                 flag |= sh & (x < floor)
