@@ -280,8 +280,6 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             bv[h] = x
             S += A[last, h] * x
         rS = 1.0 / S
-        for h in range(K):
-            u[b, last, h] = (A[last, h] * bv[h]) / S
         for t in range(L - 2, -1, -1):
             # marginals of transition t, from beta_{t+1} and S_{t+1} = sum a_{t+1} beta_{t+1}: with
             # n_{t+1} = s E + a_t D = z a_{t+1}, v_{t+1} = (s E / z) beta / S and w_t = (a_t D / z) beta / S.
@@ -294,6 +292,7 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             for h in range(K):
                 e = E[t, h]
                 x = bv[h]
+                u[b, t + 1, h] = (A[t + 1, h] * x) / S
                 v[b, t + 1, h] = (qs * e) * x * rS
                 w[b, t, h] = (A[t, h] * D[t, h] * rz) * x * rS
                 g += e * x
@@ -313,9 +312,8 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
                 S += A[t, h] * x
             flag |= not (S >= sfloor)
             rS = 1.0 / S
-            for h in range(K):
-                u[b, t, h] = (A[t, h] * bv[h]) / S
-        for h in range(K):
+        for h in range(K):  # u_t is written with transition t's marginals, u_0 here
+            u[b, 0, h] = (A[0, h] * bv[h]) / S
             v[b, 0, h] = u[b, 0, h]
         if flag:
             bad[b] = True
