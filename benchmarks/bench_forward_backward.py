@@ -20,6 +20,8 @@ is the time to read the four inputs and write u, v, w once (``7 B T K`` elements
     python benchmarks/bench_forward_backward.py --threads 1 --shapes "64,1000,8;16,100,4"
     python benchmarks/bench_forward_backward.py --compile-time        # also Numba's first-call time, cold and cached
     python benchmarks/bench_forward_backward.py --breakdown           # where the numba backend's time goes
+    git show OLD:torchrl_options/inference/_numba_kernels.py > /tmp/old_kernels.py   # another version's kernels,
+    python benchmarks/bench_forward_backward.py --breakdown --backends numba@/tmp/old_kernels.py  # interleaved
     python benchmarks/bench_forward_backward.py --device cuda         # adds (4096, 1000, 16) and the Triton kernel
 """
 from __future__ import annotations
@@ -73,10 +75,39 @@ def sync(device):
         torch.cuda.synchronize()
 
 
+_OTHER_KERNELS = {}
+
+
+def other_kernels(path):
+    """The Numba kernels module of another version of the package, loaded from ``path`` (a copy of
+    ``torchrl_options/inference/_numba_kernels.py``, e.g. ``git show OLD:torchrl_options/inference/_numba_kernels.py
+    > /tmp/old_kernels.py``), for the ``numba@PATH`` contenders."""
+    if path not in _OTHER_KERNELS:
+        import importlib.util
+
+        name = "_bench_kernels_" + "".join(c if c.isalnum() else "_" for c in os.path.abspath(path))
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module  # Numba's cache finds the module by name
+        spec.loader.exec_module(module)
+        _OTHER_KERNELS[path] = module
+    return _OTHER_KERNELS[path]
+
+
 def run_once(name, xs):
     if name == "baseline":
         ll = baseline_log_likelihood(*xs)
         return torch.autograd.grad(ll.sum(), xs[0])
+    if name.startswith("numba@"):  # the numba backend with another version's kernels (same Python around them)
+        from torchrl_options.inference import _numba_fb as nf
+
+        kept = nf._kernels()
+        nf._KERNELS = other_kernels(name[len("numba@"):])
+        try:
+            ll = forward_backward(*xs, backend="numba", validate=False).log_likelihood
+            return torch.autograd.grad(ll.sum(), xs)
+        finally:
+            nf._KERNELS = kept
     ll = forward_backward(*xs, backend=name, validate=False).log_likelihood
     return torch.autograd.grad(ll.sum(), xs)
 
@@ -140,12 +171,14 @@ def numba_first_call_times() -> tuple[str, str]:
     return out[0], out[1]
 
 
-def numba_breakdown(B, T, K, reps):
+def numba_breakdown(B, T, K, reps, others=()):
     """Median process CPU times [ms] of the numba backend's parts at (B, T, K), float32, 1 thread, interleaved:
     the compiled forward-backward kernel alone (outputs allocated once), the same with its outputs allocated per
     call, ``numba_forward_backward`` (the Python preparation around the kernel), ``forward_backward`` without
     autograd, the gradient kernel alone, ``numba_expectation_gradient`` (its outputs allocated per call), and
-    forward + ``torch.autograd.grad`` with respect to all four inputs (what the main table times)."""
+    forward + ``torch.autograd.grad`` with respect to all four inputs (what the main table times); for each path
+    in ``others`` (another version's kernels, see :func:`other_kernels`) its forward-backward kernel alone and its
+    forward + ``torch.autograd.grad``, interleaved with the rest."""
     import numpy as np
 
     from torchrl_options.inference import _numba_fb as nf
@@ -190,6 +223,15 @@ def numba_breakdown(B, T, K, reps):
         "numba_expectation_gradient": lambda: nf.numba_expectation_gradient(g, u, v, w, mask, term),
         "forward + autograd.grad": full,
     }
+    for path in others:
+        mod, tag = other_kernels(path), os.path.basename(path)
+
+        def other_kernel(mod=mod):
+            mod.fb_rows(*nps, lengths, termn, ll.double().numpy(), u.numpy(), v.numpy(), w.numpy(), bad.numpy(),
+                        *floors, 0, B)  # fmt: skip
+
+        parts[f"fb kernel (outputs kept), {tag}"] = other_kernel
+        parts[f"forward + autograd.grad, {tag}"] = lambda path=path: run_once("numba@" + path, xs)
     times = {name: [] for name in parts}
     for f in parts.values():
         f()
@@ -207,7 +249,8 @@ def main(argv=None):
     p.add_argument("--shapes", default=None, help="semicolon-separated B,T,K (default: the issue's shapes)")
     p.add_argument("--reps", type=int, default=5, help="interleaved rounds after the warm-up")
     p.add_argument("--threads", default="1,2", help="comma-separated thread counts (torch.set_num_threads)")
-    p.add_argument("--backends", default=None, help="default: baseline and every backend that can run, and auto")
+    p.add_argument("--backends", default=None, help="default: baseline and every backend that can run, and auto; "
+                   "numba@FILE: the numba backend with the kernels of FILE (another version's _numba_kernels.py)")
     p.add_argument("--compile-time", action="store_true", help="also time Numba's first call in a fresh process")
     p.add_argument("--breakdown", action="store_true", help="only the numba backend's parts (1 thread, CPU time)")
     args = p.parse_args(argv)
@@ -238,7 +281,8 @@ def main(argv=None):
         for B, T, K in shapes:
             floor = 7 * B * T * K * 4 / bw
             print(f"\n{B}, {T}, {K} (memory floor {floor * 1e3:.2f} ms); {load()}")
-            for name, ms in numba_breakdown(B, T, K, args.reps).items():
+            others = [b[len("numba@"):] for b in (args.backends or "").split(",") if b.startswith("numba@")]
+            for name, ms in numba_breakdown(B, T, K, args.reps, others).items():
                 print(f"  {name:<32} {ms:8.2f} ms {ms / 1e3 / floor:6.1f}x floor")
         return
     for threads in [int(n) for n in args.threads.split(",")]:
@@ -262,6 +306,7 @@ def main(argv=None):
             base = med.get("baseline")
             for name in backends:
                 label = f"auto->{resolve_backend('auto', xs[0])}" if name == "auto" else name
+                label = "numba@" + os.path.basename(name[6:]) if name.startswith("numba@") else label
                 ratio = f"{base / med[name]:10.1f}x" if base else f"{'-':>11}"
                 print(f"{B:>5} {T:>6} {K:>4}  {label:<16} {first[name] * 1e3:>10.1f} {med[name] * 1e3:>11.2f} "
                       f"{ratio} {med[name] / floor:>7.1f}x {cpu[name] * 1e3:>9.2f}")  # fmt: skip

@@ -8,10 +8,12 @@ buffers) held in the core's cache:
 
 1. *Factors*, per transition ``t`` (step ``t`` to ``t + 1``), exponentiated once in float64 after subtracting the
    step's largest log-factor ``m_t``: ``D = exp(log_pi + log_cont - m_t)`` (stay), ``C = exp(log_pi + log_term +
-   max log_eta_{t+1} - m_t)`` (terminate) and ``E = exp(log_eta_{t+1} - max log_eta_{t+1})`` (start). The
-   transition is rank one plus diagonal, ``M = diag(D) + E C^T``, so a step costs O(K).
-2. *Forward*: ``n = (C . a) E + D * a``; ``a`` is normalised every step and the log-normalisers (plus the shifts
-   ``m_t``) sum to the log-likelihood.
+   max log_eta_{t+1} - m_t)`` (terminate) and ``E = exp(log_eta_{t+1} - max log_eta_{t+1})`` (start), the
+   exponentials in one flat loop over the row's ``(T - 1) * K`` entries (long enough for the compiler to vectorise
+   it). The transition is rank one plus diagonal, ``M = diag(D) + E C^T``, so a step costs O(K).
+2. *Forward*: ``n = (C . a) E + D * a``; ``a`` is normalised every step (its normaliser taken as
+   ``(C . a) sum(E) + D . a``, so that only one reduction waits on the previous step) and the log-normalisers (plus
+   the shifts ``m_t``) sum to the log-likelihood.
 3. *Backward*, fused with the marginals: ``b = (E . b') C + D * b'`` normalised every step, and at each step
    ``u``, ``v``, ``w`` are written from ``a``, ``b`` and the transition's two terms, so the backward messages are
    never stored.

@@ -113,6 +113,26 @@ def _factor(x):
 
 
 @_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
+def _flat_factors(lp, lt, lc, le, sd, se, D, C, E):
+    """The factors of a row's transitions in one flat loop over its ``(L - 1) * K`` entries (long, so the compiler
+    vectorises it; a loop over the K options of one step is too short for that): ``D = exp(lp + lc + sd)``,
+    ``C = exp(lp + lt + (sd - se))``, ``E = exp(le + se)``, with the shifts of each entry's step ``sd = -m_t`` and
+    ``se = -max_h log_eta_{t+1}(h)``; ``le`` is the row's ``log_eta`` from step 1 on. Returns whether a finite
+    log-factor flushed to 0 (see :func:`_factor`)."""
+    bad = False
+    for i in range(D.shape[0]):
+        p = np.float64(lp[i])
+        d, bd = _factor(p + np.float64(lc[i]) + sd[i])
+        c, bc = _factor(p + np.float64(lt[i]) + (sd[i] - se[i]))
+        e, be = _factor(np.float64(le[i]) + se[i])
+        D[i] = d
+        C[i] = c
+        E[i] = e
+        bad |= bd | bc | be
+    return bad
+
+
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zfloor, sfloor, b0, b1):
     """Forward-backward of rows ``b0 .. b1 - 1`` (see :mod:`._numba_fb`): writes ``ll_out`` [B] (float64), ``u``,
     ``v``, ``w`` (zeros on padding) and ``bad`` [B] (the caller passes False; a flagged row's u, v, w are partial).
@@ -122,7 +142,7 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
     at least ``floor``; each step's normaliser is at least ``zfloor`` and ``sum_h alpha_t(h) beta_t(h)`` at least
     ``sfloor``. Then what float64 drops (products below 1e-308) is negligible against every kept quantity, and
     every non-zero output carries float64's relative precision."""
-    K = lp.shape[2]
+    T, K = lp.shape[1], lp.shape[2]
     for b in range(b0, b1):
         L = lengths[b]
         D = np.empty((L, K))  # stay factors of transition t (step t -> t + 1)
@@ -136,29 +156,35 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
         sup = np.empty(K, dtype=np.bool_)  # the entries of the current message that are mathematically non-zero
         flag = False
 
-        # --- 1. factors, all transitions (no dependency between steps) ----------------------------------------
+        # --- 1. factors, all transitions (no dependency between steps): each step's shifts, spread over its K
+        # entries, then the exponentials in one flat loop over the row
+        N = (L - 1) * K
+        sd = np.empty(N)
+        se = np.empty(N)
         for t in range(L - 1):
             me = -np.inf
             for h in range(K):
                 me = max(me, np.float64(le[b, t + 1, h]))
             if me == -np.inf:
                 me = 0.0
-            m = -np.inf
+            md = -np.inf
+            mc = -np.inf
             for h in range(K):
                 p = np.float64(lp[b, t, h])
-                m = max(m, max(p + np.float64(lc[b, t, h]), p + np.float64(lt[b, t, h]) + me))
+                md = max(md, p + np.float64(lc[b, t, h]))
+                mc = max(mc, p + np.float64(lt[b, t, h]))
+            m = max(md, mc + me)  # = max_h max(p + lc, p + lt + me): rounding is monotonic
             if m == -np.inf:
                 m = 0.0
             shift[t] = m
             for h in range(K):
-                p = np.float64(lp[b, t, h])
-                d, bd = _factor(p + np.float64(lc[b, t, h]) - m)
-                c, bc = _factor(p + np.float64(lt[b, t, h]) + me - m)
-                e, be = _factor(np.float64(le[b, t + 1, h]) - me)
-                flag |= bd | bc | be
-                D[t, h] = d
-                C[t, h] = c
-                E[t, h] = e
+                sd[t * K + h] = -m
+                se[t * K + h] = -me
+        flag |= _flat_factors(
+            lp[b].reshape(T * K)[:N], lt[b].reshape(T * K)[:N], lc[b].reshape(T * K)[:N],
+            le[b].reshape(T * K)[K:K + N], sd, se,
+            D.reshape(L * K)[:N], C.reshape(L * K)[:N], E.reshape(L * K)[:N],
+        )  # fmt: skip
 
         # --- 2. forward ---------------------------------------------------------------------------------------
         me = -np.inf
@@ -179,20 +205,23 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             A[0, h] = n[h] * rz
         prod = 1.0  # product of the normalisers since the last log
         for t in range(L - 1):
+            # z = sum_h (s E + a D) = s sum(E) + sum(a D): three independent sums, so that the step's
+            # dependency chain (a_t -> a_{t+1}) holds one reduction, not two
             s = 0.0
+            q = 0.0
+            es = 0.0
             ssup = False
             for h in range(K):
-                s += A[t, h] * C[t, h]
+                ah = A[t, h]
+                s += ah * C[t, h]
+                q += ah * D[t, h]
+                es += E[t, h]
                 ssup |= sup[h] & (C[t, h] > 0.0)
-            z = 0.0
-            for h in range(K):
-                x = s * E[t, h] + A[t, h] * D[t, h]
-                n[h] = x
-                z += x
+            z = s * es + q
             flag |= not (z >= zfloor)
             rz = 1.0 / z
             for h in range(K):
-                a = n[h] * rz
+                a = (s * E[t, h] + A[t, h] * D[t, h]) * rz
                 A[t + 1, h] = a
                 sh = (ssup & (E[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
                 sup[h] = sh
@@ -251,32 +280,31 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
             bv[h] = x
             S += A[last, h] * x
         rS = 1.0 / S
-        for h in range(K):
-            u[b, last, h] = (A[last, h] * bv[h]) / S
         for t in range(L - 2, -1, -1):
             # marginals of transition t, from beta_{t+1} and S_{t+1} = sum a_{t+1} beta_{t+1}: with
             # n_{t+1} = s E + a_t D = z a_{t+1}, v_{t+1} = (s E / z) beta / S and w_t = (a_t D / z) beta / S.
             rz = 1.0 / zs[t]
             qs = sw[t] * rz
             g = 0.0
+            r = 0.0
+            cs = 0.0
             gsup = False
             for h in range(K):
                 e = E[t, h]
                 x = bv[h]
+                u[b, t + 1, h] = (A[t + 1, h] * x) / S
                 v[b, t + 1, h] = (qs * e) * x * rS
                 w[b, t, h] = (A[t, h] * D[t, h] * rz) * x * rS
                 g += e * x
+                r += D[t, h] * x
+                cs += C[t, h]
                 gsup |= sup[h] & (e > 0.0)
-            z = 0.0
-            for h in range(K):
-                x = C[t, h] * g + D[t, h] * bv[h]
-                n[h] = x
-                z += x
+            z = cs * g + r  # = sum_h (C g + D b), as in the forward pass
             flag |= not (z >= zfloor)
             rz = 1.0 / z
             S = 0.0
             for h in range(K):
-                x = n[h] * rz
+                x = (C[t, h] * g + D[t, h] * bv[h]) * rz
                 sh = (gsup & (C[t, h] > 0.0)) | (sup[h] & (D[t, h] > 0.0))
                 sup[h] = sh
                 flag |= sh & (x < floor)
@@ -284,9 +312,8 @@ def fb_rows(lp, lt, lc, le, lengths, terminal, ll_out, u, v, w, bad, floor, zflo
                 S += A[t, h] * x
             flag |= not (S >= sfloor)
             rS = 1.0 / S
-            for h in range(K):
-                u[b, t, h] = (A[t, h] * bv[h]) / S
-        for h in range(K):
+        for h in range(K):  # u_t is written with transition t's marginals, u_0 here
+            u[b, 0, h] = (A[0, h] * bv[h]) / S
             v[b, 0, h] = u[b, 0, h]
         if flag:
             bad[b] = True
