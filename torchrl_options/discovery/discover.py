@@ -15,8 +15,9 @@ from torchrl_options.checkpoints import restores_global_rng
 from torchrl_options.discovery._validation import check_discover_options, check_trajectories
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters
+from torchrl_options.discovery.split_merge import check_split_merge_options, split_merge as run_split_merge
 from torchrl_options.discovery.tabulated import TabulatedDDO
-from torchrl_options.discovery.width import AUTO_WIDTHS, select_width
+from torchrl_options.discovery.width import AUTO_WIDTHS, held_out_log_likelihood, select_width
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP
 from torchrl_options.objectives import DDOLoss
 
@@ -66,6 +67,12 @@ class DiscoveryResult:
         num_cells (int or None): with ``num_cells="auto"``, the hidden-layer width chosen; ``None`` otherwise.
         width_log_likelihoods (dict): with ``num_cells="auto"``, each candidate width's log-likelihood per step on
             the held-out trajectories (:func:`~torchrl_options.discovery.width.select_width`); empty otherwise.
+        split_merge_moves (list of dict): with ``split_merge > 0``, one dict per proposed move
+            (:func:`~torchrl_options.discovery.split_merge.split_merge`): ``move``, ``victim``, ``donor``,
+            ``log_likelihood_before`` and ``log_likelihood_after`` (training log-likelihood per step of the current
+            model and of the re-fit) and ``accepted``; empty otherwise. ``options``, ``history`` (the main fit's
+            iterations followed by those of each accepted re-fit), ``converged``, ``option_usage``,
+            ``duplicate_options`` and ``warnings`` then describe the final model.
     """
 
     options: TensorDictModuleBase
@@ -78,6 +85,7 @@ class DiscoveryResult:
     warnings: list[str] = field(default_factory=list)
     num_cells: int | None = None
     width_log_likelihoods: dict[int, float] = field(default_factory=dict)
+    split_merge_moves: list[dict] = field(default_factory=list)
 
     @property
     def final_log_likelihood_per_step(self) -> float:
@@ -206,6 +214,55 @@ def _check_tol(tol: float | None, patience: int) -> None:
         raise ValueError(f"tol must be None or a number >= 0 (nats per step), got {tol!r}.")
     if not isinstance(patience, int) or isinstance(patience, bool) or patience < 1:
         raise ValueError(f"patience must be a positive int (iterations), got {patience!r}.")
+
+
+def _check_split_merge(
+    split_merge: int,
+    split_merge_iterations: int,
+    num_options: int,
+    options: TensorDictModuleBase | None,
+    meta_control: str | TensorDictModuleBase,
+    architecture: str,
+    optimizer: object,
+    trajectories: object,
+) -> None:
+    """Refuses ``split_merge`` settings :func:`discover_options` cannot honour, before any training."""
+    if not isinstance(split_merge, int) or isinstance(split_merge, bool):
+        raise TypeError(f"split_merge must be an int >= 0 (the number of moves), got {split_merge!r}.")
+    if split_merge < 0:
+        raise ValueError(f"split_merge must be an int >= 0 (the number of moves), got {split_merge}.")
+    if (
+        not isinstance(split_merge_iterations, int)
+        or isinstance(split_merge_iterations, bool)
+        or split_merge_iterations < 1
+    ):
+        raise ValueError(f"split_merge_iterations must be an int >= 1, got {split_merge_iterations!r}.")
+    if not split_merge:
+        return
+    if num_options < 2:
+        raise ValueError(f"split_merge copies one option into another's slot: it needs num_options >= 2, got {num_options}.")
+    if not (isinstance(meta_control, str) and meta_control == "uniform"):
+        raise ValueError(
+            "split_merge supports only meta_control='uniform' (a learned meta-control's choice of the copied option "
+            f"is not copied), got meta_control={meta_control!r}."
+        )
+    if options is None and architecture != "separate":
+        raise ValueError(
+            "split_merge copies one option's own parameters into another's: it needs architecture='separate' "
+            f"(no parameters shared between options), got architecture={architecture!r}."
+        )
+    if options is not None:
+        check_split_merge_options(options, num_options)
+    if isinstance(optimizer, torch.optim.Optimizer):
+        raise ValueError(
+            "split_merge re-trains each move with a fresh optimizer: give an optimizer factory (or None), not an "
+            f"optimizer instance, got {type(optimizer).__name__}."
+        )
+    if isinstance(trajectories, ReplayBuffer):
+        raise ValueError(
+            "split_merge compares the training log-likelihood of the whole data before and after each move: give "
+            "the trajectories as tensordicts, not a replay buffer."
+        )
 
 
 def _check_m_steps(m_steps: int, name: str = "m_steps") -> None:
@@ -377,6 +434,8 @@ def discover_options(
     return_info: bool = False,
     log_every: int = 50,
     desc: str = "DDO",
+    split_merge: int = 0,
+    split_merge_iterations: int = 300,
 ) -> TensorDictModuleBase | DiscoveryResult:
     """Discovers ``num_options`` options from demonstration trajectories with DDO.
 
@@ -460,6 +519,19 @@ def discover_options(
         log_every (int): log the diagnostics every this many iterations.
         desc (str): the progress bar's label, e.g. which run it fits (``"DDO supervised seed 0, K=4, uniform"``).
             Defaults to ``"DDO"``.
+        split_merge (int): after the main fit, propose this many split-and-merge moves
+            (:mod:`~torchrl_options.discovery.split_merge`; Ueda et al., 2000): a little-used or duplicated option
+            is overwritten with a noisy copy of a busy one, the model re-trained for ``split_merge_iterations``
+            iterations from there (one start, the same ``lr``, ``m_steps``, ``tol``, ``patience``, ``batch_size``,
+            optimizer factory and scheduler), and the move kept only if the training log-likelihood per step rises
+            by more than 1e-4; so the final likelihood is never below the main fit's. Each move costs up to
+            ``split_merge_iterations`` iterations. It needs options whose every parameter has the option index as
+            leading dimension (the default modules with ``architecture="separate"``), ``meta_control="uniform"``,
+            ``num_options >= 2``, trajectories given as tensordicts (not a replay buffer) and no optimizer
+            instance. With ``num_cells="auto"`` the moves follow the final fit on all the trajectories. Defaults
+            to 0 (off). On the planted ``landmarks-8`` problem, 8 moves raise the share of correctly labelled
+            steps from the main fit's local optimum (``docs/experiments/planted_suite.md``).
+        split_merge_iterations (int): the most iterations of each move's re-fit. Defaults to 300.
 
     Returns:
         The trained options module, or a :class:`DiscoveryResult` with ``return_info=True``.
@@ -485,6 +557,8 @@ def discover_options(
     _check_tol(tol, patience)
     if isinstance(num_cells, str) and num_cells != "auto":
         raise ValueError(f"num_cells must be an int, a sequence of ints or 'auto', got {num_cells!r}.")
+    _check_split_merge(split_merge, split_merge_iterations, num_options, options, meta_control, architecture,
+                       optimizer, trajectories)  # fmt: skip
     fresh_modules = options is None and not isinstance(optimizer, torch.optim.Optimizer) and isinstance(meta_control, str)
     if restarts is None:
         # several short starts are the default whenever fresh modules can be drawn for each; a user's own modules
@@ -561,6 +635,7 @@ def discover_options(
         # the chosen fit continues on all the trajectories (its starts were already selected on the training share)
         common["meta_control"] = first.meta_control if first.meta_control is not None else "uniform"
         final = discover_options(data, num_options, options=first.options, num_cells=width, restarts=1, desc=desc,
+                                 split_merge=split_merge, split_merge_iterations=split_merge_iterations,
                                  **common)  # fmt: skip
         final.restart_log_likelihoods = first.restart_log_likelihoods
         disagreement = restart_disagreement(first.restart_log_likelihoods)
@@ -664,19 +739,47 @@ def discover_options(
         if not stopped and num_iterations > len(history):
             history = history + train(loss_module, opt, sched, table, num_iterations - len(history), desc)
     options, meta_module = loss_module.options, loss_module.meta_control
+    if split_merge:
+        check_split_merge_options(options, num_options)
     with torch.no_grad():
         diagnostics = option_diagnostics(loss_module.log_probabilities(data))
     disagreement = restart_disagreement(restart_lls)
     warnings = diagnostics.warnings + ([disagreement] if disagreement else [])
     for message in warnings:
         logger.warning("discover_options: %s", message)
-    if return_info:
-        converged = None
-        if tol is not None:
-            converged = converged_at([h["log_likelihood_per_step"] for h in history], tol, patience) is not None
-        return DiscoveryResult(
-            options=options, meta_control=meta_module, history=history, converged=converged,
-            restart_log_likelihoods=restart_lls, option_usage=diagnostics.usage,
-            duplicate_options=diagnostics.duplicates, warnings=warnings,
-        )  # fmt: skip
-    return options
+    converged = None
+    if tol is not None:
+        converged = converged_at([h["log_likelihood_per_step"] for h in history], tol, patience) is not None
+    result = DiscoveryResult(
+        options=options, meta_control=meta_module, history=history, converged=converged,
+        restart_log_likelihoods=restart_lls, option_usage=diagnostics.usage,
+        duplicate_options=diagnostics.duplicates, warnings=warnings,
+    )  # fmt: skip
+    if split_merge:
+        refits: list[DiscoveryResult] = []
+
+        def refit(candidate: TensorDictModuleBase, move_seed: int) -> DiscoveryResult:
+            refits.append(discover_options(
+                data, num_options, options=candidate, meta_control="uniform", action_space=action_space,
+                obs_keys=obs_keys, action_key=action_key, init="random", num_iterations=split_merge_iterations,
+                m_steps=m_steps, tol=tol, patience=patience, restarts=1, batch_size=batch_size, optimizer=optimizer,
+                lr=lr, lr_scheduler=lr_scheduler, device=device, seed=move_seed, progress=progress,
+                return_info=True, log_every=log_every, desc=f"{desc} split-merge {len(refits) + 1}/{split_merge}",
+            ))  # fmt: skip
+            return refits[-1]
+
+        def score(fit: DiscoveryResult) -> float:
+            return held_out_log_likelihood(fit.options, None, data, action_space=action_space, action_key=action_key)
+
+        moves_generator = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
+        final, moves = run_split_merge(result, refit, score, split_merge, moves_generator)
+        accepted = [fit for fit, move in zip(refits, moves) if move["accepted"]]
+        if accepted:
+            # the final model's diagnostics, with the main fit's starts (and their disagreement) kept
+            final.history = history + [h for fit in accepted for h in fit.history]
+            final.restart_log_likelihoods = restart_lls
+            if disagreement and disagreement not in final.warnings:
+                final.warnings.append(disagreement)
+            result = final
+        result.split_merge_moves = moves
+    return result if return_info else result.options
