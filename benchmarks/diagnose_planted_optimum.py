@@ -122,6 +122,12 @@ def main() -> None:
                "iterations": len(result.history)}  # fmt: skip
         if args.mode == "anneal":
             row.update(beta0=args.beta0, anneal=args.anneal)
+        if result.split_merge_moves:
+            row["split_merge_moves"] = [
+                [m["victim"], m["donor"], round(m["log_likelihood_before"], 5), round(m["log_likelihood_after"], 5),
+                 m["accepted"]]
+                for m in result.split_merge_moves
+            ]  # fmt: skip
         for part, rows in (("train", train_rows), ("held_out", held_rows)):
             d = data[rows]
             with torch.no_grad():
