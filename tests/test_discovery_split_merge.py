@@ -43,7 +43,9 @@ def test_propose_pairs_cycles_victims_by_usage_with_duplicates_first():
     assert propose_pairs(usage, [(0, 2)], 1) == (1, 0)
 
 
-@pytest.mark.parametrize("make", [lambda: OptionsMLP(3, 2, 4, num_cells=5), lambda: GaussianOptionsMLP(3, 2, 4, num_cells=5)])
+@pytest.mark.parametrize(
+    "make", [lambda: OptionsMLP(3, 2, 4, num_cells=5), lambda: GaussianOptionsMLP(3, 2, 4, num_cells=5)]
+)
 def test_copy_option_overwrites_only_the_victim_with_a_noisy_copy(make):
     options = make()
     before = dict(options.named_parameters())

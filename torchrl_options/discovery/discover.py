@@ -240,7 +240,9 @@ def _check_split_merge(
     if not split_merge:
         return
     if num_options < 2:
-        raise ValueError(f"split_merge copies one option into another's slot: it needs num_options >= 2, got {num_options}.")
+        raise ValueError(
+            f"split_merge copies one option into another's slot: it needs num_options >= 2, got {num_options}."
+        )
     if not (isinstance(meta_control, str) and meta_control == "uniform"):
         raise ValueError(
             "split_merge supports only meta_control='uniform' (a learned meta-control's choice of the copied option "
