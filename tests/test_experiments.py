@@ -208,7 +208,9 @@ KEPT_GRIDWORLD_FIGURES = [
                                "H1s": "0.507 [0.439, 0.575]", "H1u - A": "+0.368 [+0.262, +0.474] | ahead",
                                "H1s - A": "+0.099 [+0.030, +0.168] | ahead", "H2u": "1.091 [1.009, 1.172]",
                                "H2u - A": "+0.682 [+0.572, +0.792] | ahead",
-                               "H2s": "0.782 [0.703, 0.861]", "H2s - A": "+0.373 [+0.285, +0.462] | ahead"}),
+                               "H2s": "0.782 [0.703, 0.861]", "H2s - A": "+0.373 [+0.285, +0.462] | ahead",
+                               "exploration/A": "0.323 [0.280, 0.366]", "exploration/H1u": "0.323 [0.294, 0.353]",
+                               "exploration/H1u - A": "+0.000 [-0.045, +0.045] | no evidence"}),
 ]
 SEEDS = {"four_rooms_paper_1000": 15, "four_rooms_ppo_15seeds": 15}  # the others: 3
 KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
@@ -219,7 +221,7 @@ KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's r
 NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
                     "+0.427 [+0.302, +0.552]", "+0.368 [+0.262, +0.474]",
-                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]"}
+                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]"}
 
 
 @pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
@@ -234,9 +236,10 @@ def test_kept_results_back_the_readme(tmp_path, folder, expected):
     with gzip.open(os.path.join(root, "results", *folder.split("/"), "results.csv.gz"), "rt") as f:
         (tmp_path / "results.csv").write_text(f.read())
     text = write_summary(tmp_path / "results.csv", tmp_path / "out", "kept", {"final_window": 100, "smooth_window": 50})
-    for name, figure in expected.items():
+    for key, figure in expected.items():
+        setting, name = key.split("/") if "/" in key else ("supervised", key)
         seeds = SEEDS.get(folder, 3)
-        row = f"| supervised | {name} |" if " - " in name else f"| supervised | {name} | {seeds} |"
+        row = f"| {setting} | {name} |" if " - " in name else f"| {setting} | {name} | {seeds} |"
         assert any(line.startswith(row) and figure in line for line in text.splitlines()), (name, figure)
 
 
