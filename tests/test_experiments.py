@@ -211,8 +211,9 @@ KEPT_GRIDWORLD_FIGURES = [
                                "H2s": "0.782 [0.703, 0.861]", "H2s - A": "+0.373 [+0.285, +0.462] | ahead",
                                "exploration/A": "0.323 [0.280, 0.366]", "exploration/H1u": "0.323 [0.294, 0.353]",
                                "exploration/H1u - A": "+0.000 [-0.045, +0.045] | no evidence"}),
+    ("four_rooms_paper_5000_A", {"A": "0.345 [0.310, 0.380]"}),
 ]
-SEEDS = {"four_rooms_paper_1000": 15, "four_rooms_ppo_15seeds": 15}  # the others: 3
+SEEDS = {"four_rooms_paper_1000": 15, "four_rooms_paper_5000_A": 15, "four_rooms_ppo_15seeds": 15}  # the others: 3
 KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
     ("four_rooms_ppo_15seeds", {"A": "0.517 [0.471, 0.563]", "H1u": "0.713 [0.665, 0.760]",
                                 "H2u": "1.038 [0.967, 1.109]", "H1u - A": "+0.196 [+0.131, +0.261] | ahead",
@@ -221,7 +222,7 @@ KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's r
 NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
                     "+0.427 [+0.302, +0.552]", "+0.368 [+0.262, +0.474]",
-                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]"}
+                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]", "0.345 [0.310, 0.380]"}
 
 
 @pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
