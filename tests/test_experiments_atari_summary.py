@@ -115,3 +115,47 @@ def test_recipe_writes_aggregates_and_their_plot(tmp_path):
     assert summary.index("## Aggregates") < summary.index("## H1 vs A")  # the aggregates first, per game after
     for png in ("aggregates.png", "curves.png"):
         assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_kept_cpu_vec_results():
+    """The figures quoted on docs/experiments/atari_ram.md and in the README, recomputed from results/atari_cpu_vec/."""
+    import gzip
+
+    from torchrl_options.experiments import ResultsLog
+    from torchrl_options.experiments.aggregates import aggregates_markdown
+    from torchrl_options.experiments.atari import demonstration_fit_markdown
+
+    folder = os.path.join(ROOT, "results", "atari_cpu_vec")
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rt") as f:
+        text = f.read()
+    rows = [dict(zip(text.splitlines()[0].split(","), line.split(","))) for line in text.splitlines()[1:]]
+    for row in rows:
+        row.update(seed=int(row["seed"]), episode=int(row["episode"]), **{"return": float(row["return"]),
+                                                                         "frames": float(row["frames"])})
+    comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
+    assert set(comparisons) == set(GAMES) and all(c.num_seeds == 4 for c in comparisons.values())
+
+    def fmt(interval):
+        mean, low, high = interval
+        return f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]"
+
+    assert fmt(comparisons["Atlantis"].diff_episodes) == "-0.28 [-0.48, -0.08]"
+    assert fmt(comparisons["Pooyan"].diff_episodes) == "-2.85 [-6.01, +0.30]"
+    assert all(c.diff_episodes[0] < 0 for c in comparisons.values())  # H1 below A in every game
+    behind = [g for g, c in comparisons.items() if c.diff_episodes[2] < 0]
+    ahead = [g for g, c in comparisons.items() if c.diff_episodes[1] > 0]
+    assert behind == ["Atlantis"] and ahead == []
+    aggregates = aggregates_markdown(atari_aggregates(rows, phase1_episodes=150, pairs=[("H1", "A")]), score_name="x")
+    for figure in ("0.727 [0.620, 0.806]", "0.361 [0.140, 0.578]", "0.24 [0.09, 0.39]"):
+        assert figure in aggregates
+    fit = demonstration_fit_markdown(folder)
+    lines = [line.split("|")[1:-1] for line in fit.splitlines() if line.startswith("|")]
+    column = [c.strip() for c in lines[0]].index("seeds within 0.05 nats")
+    within = {cells[0].strip(): cells[column].strip() for cells in lines[2:]}
+    assert within == {game: "4 of 4" for game in GAMES}  # every seed within 0.05 nats of its demonstrator
+    with open(os.path.join(ROOT, "README.md")) as f:
+        readme = f.read()
+    with open(os.path.join(ROOT, "docs", "experiments", "atari_ram.md")) as f:
+        page = f.read()
+    for figure in ("-0.28 [-0.48, -0.08]", "0.727 [0.620, 0.806]", "0.361 [0.140, 0.578]", "0.24 [0.09, 0.39]"):
+        assert figure in readme and figure in page
