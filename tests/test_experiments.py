@@ -212,8 +212,12 @@ KEPT_GRIDWORLD_FIGURES = [
                                "exploration/A": "0.323 [0.280, 0.366]", "exploration/H1u": "0.323 [0.294, 0.353]",
                                "exploration/H1u - A": "+0.000 [-0.045, +0.045] | no evidence"}),
     ("four_rooms_paper_5000_A", {"A": "0.345 [0.310, 0.380]"}),
+    ("three_rooms_paper_1000", {"exploration/A": "0.036 [0.023, 0.050]", "exploration/H1u": "0.011 [-0.004, 0.026]",
+                                "exploration/H1u - A": "-0.026 [-0.039, -0.012] | behind"}),
 ]
-SEEDS = {"four_rooms_paper_1000": 15, "four_rooms_paper_5000_A": 15, "four_rooms_ppo_15seeds": 15}  # the others: 3
+SEEDS = {  # the others: 3
+    "four_rooms_paper_1000": 15, "four_rooms_paper_5000_A": 15, "three_rooms_paper_1000": 10, "four_rooms_ppo_15seeds": 15,
+}
 KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
     ("four_rooms_ppo_15seeds", {"A": "0.517 [0.471, 0.563]", "H1u": "0.713 [0.665, 0.760]",
                                 "H2u": "1.038 [0.967, 1.109]", "H1u - A": "+0.196 [+0.131, +0.261] | ahead",
@@ -222,7 +226,8 @@ KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's r
 NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quoted on any page
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
                     "+0.427 [+0.302, +0.552]", "+0.368 [+0.262, +0.474]",
-                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]", "0.345 [0.310, 0.380]"}
+                    "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]", "0.345 [0.310, 0.380]",
+                    "-0.026 [-0.039, -0.012]"}
 
 
 @pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
