@@ -159,3 +159,28 @@ def test_kept_cpu_vec_results():
         page = f.read()
     for figure in ("-0.28 [-0.48, -0.08]", "0.727 [0.620, 0.806]", "0.361 [0.140, 0.578]", "0.24 [0.09, 0.39]"):
         assert figure in readme and figure in page
+
+
+def test_kept_cpu_vec_paper_env_results():
+    """The figures quoted on docs/experiments/atari_ram.md for the run with the paper's env semantics, recomputed
+    from results/atari_cpu_vec_paper_env/."""
+    import gzip
+
+    from torchrl_options.experiments.aggregates import aggregates_markdown
+
+    folder = os.path.join(ROOT, "results", "atari_cpu_vec_paper_env")
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rt") as f:
+        lines = f.read().splitlines()
+    rows = [dict(zip(lines[0].split(","), line.split(","))) for line in lines[1:]]
+    for row in rows:
+        row.update(seed=int(row["seed"]), episode=int(row["episode"]), **{"return": float(row["return"]),
+                                                                         "frames": float(row["frames"])})
+    comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
+    mean, low, high = comparisons["SpaceInvaders"].diff_episodes
+    assert f"{mean:+.1f} [{low:+.1f}, {high:+.1f}]" == "+14.6 [-18.6, +47.8]"
+    assert all(c.diff_episodes[1] <= 0 <= c.diff_episodes[2] for c in comparisons.values())  # no verdict either way
+    aggregates = aggregates_markdown(atari_aggregates(rows, phase1_episodes=150, pairs=[("H1", "A")]), score_name="x")
+    with open(os.path.join(ROOT, "docs", "experiments", "atari_ram.md")) as f:
+        page = f.read()
+    for figure in ("0.459 [0.381, 0.548]", "0.239 [0.075, 0.509]", "0.45 [0.28, 0.62]"):
+        assert figure in aggregates and figure in page
