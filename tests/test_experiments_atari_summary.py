@@ -117,21 +117,24 @@ def test_recipe_writes_aggregates_and_their_plot(tmp_path):
         assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
 
 
-def test_kept_cpu_vec_results():
-    """The figures quoted on docs/experiments/atari_ram.md and in the README, recomputed from results/atari_cpu_vec/."""
+def _kept_rows(folder, tmp_path):
+    """The rows of a kept ``results.csv.gz``, read back by the recipes' own :class:`ResultsLog`."""
     import gzip
 
     from torchrl_options.experiments import ResultsLog
+
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rt") as f:
+        (tmp_path / "results.csv").write_text(f.read())
+    return ResultsLog(tmp_path / "results.csv").rows()
+
+
+def test_kept_cpu_vec_results(tmp_path):
+    """The figures quoted on docs/experiments/atari_ram.md and in the README, recomputed from results/atari_cpu_vec/."""
     from torchrl_options.experiments.aggregates import aggregates_markdown
     from torchrl_options.experiments.atari import demonstration_fit_markdown
 
     folder = os.path.join(ROOT, "results", "atari_cpu_vec")
-    with gzip.open(os.path.join(folder, "results.csv.gz"), "rt") as f:
-        text = f.read()
-    rows = [dict(zip(text.splitlines()[0].split(","), line.split(","))) for line in text.splitlines()[1:]]
-    for row in rows:
-        row.update(seed=int(row["seed"]), episode=int(row["episode"]), **{"return": float(row["return"]),
-                                                                         "frames": float(row["frames"])})
+    rows = _kept_rows(folder, tmp_path)
     comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
     assert set(comparisons) == set(GAMES) and all(c.num_seeds == 4 for c in comparisons.values())
 
@@ -161,20 +164,12 @@ def test_kept_cpu_vec_results():
         assert figure in readme and figure in page
 
 
-def test_kept_cpu_vec_paper_env_results():
+def test_kept_cpu_vec_paper_env_results(tmp_path):
     """The figures quoted on docs/experiments/atari_ram.md for the run with the paper's env semantics, recomputed
     from results/atari_cpu_vec_paper_env/."""
-    import gzip
-
     from torchrl_options.experiments.aggregates import aggregates_markdown
 
-    folder = os.path.join(ROOT, "results", "atari_cpu_vec_paper_env")
-    with gzip.open(os.path.join(folder, "results.csv.gz"), "rt") as f:
-        lines = f.read().splitlines()
-    rows = [dict(zip(lines[0].split(","), line.split(","))) for line in lines[1:]]
-    for row in rows:
-        row.update(seed=int(row["seed"]), episode=int(row["episode"]), **{"return": float(row["return"]),
-                                                                         "frames": float(row["frames"])})
+    rows = _kept_rows(os.path.join(ROOT, "results", "atari_cpu_vec_paper_env"), tmp_path)
     comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
     mean, low, high = comparisons["SpaceInvaders"].diff_episodes
     assert f"{mean:+.1f} [{low:+.1f}, {high:+.1f}]" == "+14.6 [-18.6, +47.8]"
