@@ -16,7 +16,16 @@ from torchrl_options import (
     save_options,
     viterbi,
 )
-from torchrl_options.discovery import converged_at, fit_ddo, kmeans, TabulatedDDO, unique_rows
+from torchrl_options.discovery import (
+    change_points,
+    converged_at,
+    fit_ddo,
+    kmeans,
+    pretrain_on_clusters,
+    pretrain_on_segments,
+    TabulatedDDO,
+    unique_rows,
+)
 from torchrl_options.testing import label_accuracy, planted_corridor_demonstrations
 
 
@@ -28,7 +37,7 @@ def _posterior(options, data, meta=None):
     return fb, vit
 
 
-@pytest.mark.parametrize("init", ["random", "kmeans"])
+@pytest.mark.parametrize("init", ["random", "kmeans", "segments"])
 def test_planted_two_option_hierarchy_is_recovered(init):
     """The most likely option matches the planted one on at least 90% of steps (up to relabelling)."""
     data = planted_corridor_demonstrations(32, 100, seed=0)
@@ -112,6 +121,93 @@ def test_kmeans_separates_clusters():
     assert label_accuracy(labels, torch.arange(100) // 50) == 1.0
     with pytest.raises(ValueError, match="k"):
         kmeans(x, 0)
+
+
+def _near(cuts, truth, slack=1):
+    """Share of ``cuts`` within ``slack`` steps of a ``truth`` step (both ``[B, T]`` bool)."""
+    near = torch.zeros_like(truth)
+    for d in range(-slack, slack + 1):
+        near |= torch.roll(truth, d, 1)
+    return float((cuts & near).sum() / cuts.sum().clamp_min(1))
+
+
+def test_change_points_find_the_planted_switches():
+    """On planted landmark walks the cuts land next to the true switches (precision and recall), and nowhere on padding."""
+    from torchrl_options.testing import PLANTED_SUITE
+
+    problem = next(p for p in PLANTED_SUITE if p.name == "landmarks-8")
+    data, _ = problem.make(0)
+    data = data[:64]
+    mask = data["collector", "mask"]
+    truth = data["true_switch"] & mask
+    truth[:, 0] = False
+    cuts = change_points(data["action"], mask)
+    assert not (cuts & ~mask).any() and cuts[:, 0].all()
+    inner = cuts.clone()
+    inner[:, 0] = False
+    precision, recall = _near(inner, truth), _near(truth, inner)
+    assert precision > 0.6 and recall > 0.6, (precision, recall)
+    # a stricter threshold cuts less often and more precisely
+    strict = change_points(data["action"], mask, threshold=0.7)
+    strict[:, 0] = False
+    assert strict.sum() < inner.sum() and _near(strict, truth) > precision
+
+
+def test_change_points_continuous_actions():
+    g = torch.Generator().manual_seed(0)
+    action = torch.cat([torch.randn(2, 20, 2, generator=g) * 0.1 - 1, torch.randn(2, 20, 2, generator=g) * 0.1 + 1], 1)
+    mask = torch.ones(2, 40, dtype=torch.bool)
+    mask[1, 30:] = False
+    cuts = change_points(action, mask)
+    assert cuts[:, 0].all() and cuts[:, 20].all() and int(cuts.sum()) == 4
+    assert not cuts[1, 30:].any()
+
+
+def test_segment_clusters_see_options_that_steps_cannot():
+    """Segments clustered by where they end label landmark walks far better than k-means over state-action pairs."""
+    from torchrl_options.testing import best_matching_accuracy, PLANTED_SUITE
+
+    problem = next(p for p in PLANTED_SUITE if p.name == "landmarks-8")
+    data, _ = problem.make(1)
+    data = data[:128]
+    mask = data["collector", "mask"]
+    kwargs = dict(num_options=8, num_actions=4, action_space="categorical", num_steps=1)
+    torch.manual_seed(0)
+    by_segments = pretrain_on_segments(OptionsMLP(2, 4, 8), data, mask, generator=torch.Generator().manual_seed(0), **kwargs)
+    by_steps = torch.zeros_like(by_segments)
+    by_steps[mask] = pretrain_on_clusters(OptionsMLP(2, 4, 8), data, mask, generator=torch.Generator().manual_seed(0), **kwargs)
+    acc_segments = best_matching_accuracy(by_segments, data["true_option"], mask)
+    acc_steps = best_matching_accuracy(by_steps, data["true_option"], mask)
+    assert acc_segments > 0.55 and acc_segments > acc_steps + 0.15, (acc_segments, acc_steps)
+
+
+def test_segment_start_clones_terminations():
+    """After the segment pre-training alone, each option terminates where its segments end far more than elsewhere."""
+    data = planted_corridor_demonstrations(32, 100, seed=0)
+    mask = data["collector", "mask"]
+    options = OptionsMLP(data["observation"].shape[-1], 2, 2)
+    torch.manual_seed(0)
+    labels = pretrain_on_segments(options, data, mask, num_options=2, generator=torch.Generator().manual_seed(0))
+    assert label_accuracy(labels[mask], data["true_option"][mask]) > 0.65
+    with torch.no_grad():
+        psi = torch.sigmoid(options(data["next"].select("observation"))["termination_logits"])
+    own = psi.gather(-1, labels[..., None]).squeeze(-1)
+    switch_next = torch.zeros_like(mask)
+    switch_next[:, :-1] = data["true_switch"][:, 1:] & mask[:, 1:]
+    cont_next = mask.clone()
+    cont_next[:, :-1] &= mask[:, 1:] & ~data["true_switch"][:, 1:]
+    cont_next[:, -1] = False
+    assert own[switch_next].mean() > 3 * own[cont_next].mean(), (own[switch_next].mean(), own[cont_next].mean())
+
+
+def test_change_points_bad_arguments():
+    action, mask = torch.zeros(1, 5, dtype=torch.long), torch.ones(1, 5, dtype=torch.bool)
+    for window in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="window"):
+            change_points(action, mask, window=window)
+    for threshold in (0.0, 1.0, -1, float("nan")):
+        with pytest.raises(ValueError, match="threshold"):
+            change_points(action, mask, threshold=threshold)
 
 
 def test_bad_arguments():

@@ -67,7 +67,7 @@ def test_readme_examples(tmp_path):
     namespace = run_blocks(ROOT / "README.md", tmp_path)
     assert sorted(p.name for p in ROOT.iterdir()) == before  # nothing written into the repository
     accuracy = label_accuracy(namespace["seg"].options, namespace["data"]["true_option"])
-    assert accuracy > 0.9, accuracy  # the README quotes 93.0%
+    assert accuracy > 0.9, accuracy  # the README quotes 92.8%
     rb = namespace["rb"]
     assert len(rb) > 0 and (rb[:]["steps_to_next_obs"] > 1).any()  # options ran: some decisions took k > 1 steps
     assert torch.isfinite(namespace["loss_value"])

@@ -4,19 +4,22 @@ from torchrl_options.discovery.discover import (
     converged_at,
     discover_options,
     DEFAULT_RESTARTS,
+    INITS,
     DiscoveryResult,
     fit_ddo,
     PAPER_SETTINGS,
 )
 from torchrl_options.discovery.diagnostics import option_diagnostics, OptionDiagnostics, restart_disagreement
-from torchrl_options.discovery.initialization import kmeans, pretrain_on_clusters
+from torchrl_options.discovery.initialization import change_points, kmeans, pretrain_on_clusters, pretrain_on_segments
 from torchrl_options.discovery.serialization import load_options, save_options
 from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
 
 __all__ = [
     "as_trajectory_batch",
+    "change_points",
     "converged_at",
     "DEFAULT_RESTARTS",
+    "INITS",
     "discover_options",
     "DiscoveryResult",
     "fit_ddo",
@@ -26,6 +29,7 @@ __all__ = [
     "OptionDiagnostics",
     "PAPER_SETTINGS",
     "pretrain_on_clusters",
+    "pretrain_on_segments",
     "restart_disagreement",
     "save_options",
     "TabulatedDDO",

@@ -14,7 +14,7 @@ from torchrl.data import ReplayBuffer
 from torchrl_options.checkpoints import restores_global_rng
 from torchrl_options.discovery._validation import check_discover_options, check_trajectories
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
-from torchrl_options.discovery.initialization import pretrain_on_clusters
+from torchrl_options.discovery.initialization import pretrain_on_clusters, pretrain_on_segments
 from torchrl_options.discovery.split_merge import check_split_merge_options, split_merge as run_split_merge
 from torchrl_options.discovery.tabulated import TabulatedDDO
 from torchrl_options.discovery.width import AUTO_WIDTHS, held_out_log_likelihood, select_width
@@ -37,6 +37,9 @@ _MASK = ("collector", "mask")
 
 DEFAULT_RESTARTS = 4
 """Starts drawn by :func:`discover_options` when ``restarts`` is left at ``None`` (and fresh modules can be drawn)."""
+
+INITS = ("random", "kmeans", "segments", "auto")
+"""The values of ``discover_options(init=...)``; ``"auto"`` (the default) is ``"segments"`` for fresh modules."""
 
 PAPER_SETTINGS: dict = dict(
     num_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None, init="random"
@@ -418,7 +421,7 @@ def discover_options(
     num_cells: int | Sequence[int] = 8,
     activation: str = "tanh",
     architecture: str = "separate",
-    init: str = "random",
+    init: str = "auto",
     num_iterations: int = 1000,
     m_steps: int = 5,
     tol: float | None = 1e-4,
@@ -490,7 +493,12 @@ def discover_options(
             suite. The result's ``num_cells`` and ``width_log_likelihoods`` say what was chosen and why, and its
             ``history`` holds the chosen width's iterations on the training share followed by those on all the
             trajectories.
-        init (str): ``"random"`` (default) or ``"kmeans"`` (pre-clustering of state-action pairs, appendix B).
+        init (str): how each start's options are drawn before DDO: ``"random"``, ``"kmeans"`` (pre-clustering of
+            state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
+            the segments clustered by where they end, each option cloned from a cluster:
+            :func:`~torchrl_options.discovery.pretrain_on_segments`; every start draws its own clusters), or
+            ``"auto"`` (default): ``"segments"`` for fresh modules given tensordicts, ``"random"`` (the modules as
+            they come) when ``options`` are given or the trajectories come from a replay buffer.
         num_iterations (int): the most iterations (E-steps). Defaults to 1000 (the stopping rule usually ends
             training sooner).
         m_steps (int): optimizer steps per E-step (G-steps); 1 is the paper's Expectation-Gradient. Defaults to 5.
@@ -604,8 +612,8 @@ def discover_options(
     if options is None and action_space == "categorical" and num_actions is None:
         num_actions = int(data.get(action_key)[mask].max()) + 1
         logger.info("num_actions not given: using max(action) + 1 = %d", num_actions)
-    if init not in ("random", "kmeans"):
-        raise ValueError(f"init must be 'random' or 'kmeans', got {init!r}.")
+    if init not in INITS:
+        raise ValueError(f"init must be one of {', '.join(map(repr, INITS))}, got {init!r}.")
     if isinstance(meta_control, str) and meta_control not in ("uniform", "learned"):
         raise ValueError(f"meta_control must be 'uniform', 'learned' or a module, got {meta_control!r}.")
     if isinstance(num_cells, str):
@@ -647,7 +655,7 @@ def discover_options(
         final.num_cells, final.width_log_likelihoods = width, scores
         return final if return_info else final.options
 
-    def start(table: TabulatedDDO | None):
+    def start(table: TabulatedDDO | None, start_init: str):
         """Fresh modules (drawn from the global RNG), optionally pre-clustered, with their optimizer."""
         options = user_options
         if options is None:
@@ -680,10 +688,16 @@ def discover_options(
             meta_module = meta_control.to(device)
         loss_module = DDOLoss(options, meta_module, action_space=action_space)
         loss_module.set_keys(action=action_key)
-        if init == "kmeans":
+        if start_init == "kmeans":
             pretrain_on_clusters(
                 options, data, mask, num_options=num_options, action_key=action_key, action_space=action_space,
                 num_actions=num_actions, meta_control=meta_module, lr=lr, generator=generator,
+            )
+        elif start_init == "segments":
+            pretrain_on_segments(
+                options, data, mask, num_options=num_options, action_key=action_key, action_space=action_space,
+                num_actions=num_actions, meta_control=meta_module, generator=generator,
+                termination_key=loss_module.tensor_keys.termination_logits,
             )
         params = list(loss_module.parameters())
         if isinstance(optimizer, torch.optim.Optimizer):
@@ -720,7 +734,10 @@ def discover_options(
     table = None
     candidates = []
     for r in range(restarts):
-        loss_module, opt, sched, table = start(table)
+        start_init = init
+        if init == "auto":  # fresh modules start from segments of the demonstrations; given ones as they are
+            start_init = "random" if user_options is not None or buffer is not None else "segments"
+        loss_module, opt, sched, table = start(table, start_init)
         if r == 0 and table is not None:
             logger.info(
                 "DDO: %d valid steps, %d distinct states, %d distinct state-action pairs",

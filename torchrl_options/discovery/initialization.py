@@ -1,7 +1,11 @@
-"""Symmetry-breaking initialisation of options: pre-clustering of state-action pairs (k-means).
+"""Symmetry-breaking initialisation of options: pre-clustering of steps or of segments.
 
 Appendix B of Fox et al. (2017): as in clustering, the model must be initialised so that options differ; the
-state-action pairs can first be clustered, and each option fitted to one cluster before DDO starts.
+state-action pairs can first be clustered, and each option fitted to one cluster before DDO starts
+(:func:`pretrain_on_clusters`). Options are temporally extended, so a cluster of single steps often mixes options
+that share moves; :func:`pretrain_on_segments` cuts the demonstrations where the actions change regime
+(:func:`change_points`), clusters the segments by where they end, and clones each option's policy *and* its
+termination from its segments.
 """
 from __future__ import annotations
 
@@ -14,7 +18,7 @@ from tensordict.utils import NestedKey
 
 from torchrl_options.objectives.ddo import option_log_probs
 
-__all__ = ["kmeans", "pretrain_on_clusters"]
+__all__ = ["change_points", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
 
 logger = logging.getLogger(__name__)
 
@@ -128,6 +132,232 @@ def pretrain_on_clusters(
         if meta_control is not None:
             meta = meta_control(flat.select(*meta_control.in_keys)).get("meta_logits")
             loss = loss + torch.nn.functional.cross_entropy(meta, labels)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return labels
+
+
+def _action_features(action: torch.Tensor, num_actions: int | None) -> torch.Tensor:
+    """``[B, T, F]`` float features of the actions: one-hot for integer actions, standardised for continuous ones."""
+    if action.is_floating_point():
+        flat = action.flatten(2).float()
+        return flat
+    action = action.reshape(*action.shape[:2], -1)[..., 0].long().clamp_min(0)
+    if num_actions is None:
+        num_actions = int(action.max()) + 1
+    return torch.nn.functional.one_hot(action, num_actions).float()
+
+
+def _distinct_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(index of each distinct row's first occurrence, its count as float)`` of ``[N, D]`` ``x``."""
+    if x.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.long, device=x.device), x.new_zeros(0)
+    _, inverse, counts = torch.unique(x, dim=0, return_inverse=True, return_counts=True)
+    first = torch.full((counts.shape[0],), x.shape[0], dtype=torch.long, device=x.device)
+    first.scatter_reduce_(0, inverse, torch.arange(x.shape[0], device=x.device), "amin")
+    return first, counts.to(x.dtype)
+
+
+def change_points(
+    action: torch.Tensor,
+    mask: torch.Tensor,
+    *,
+    window: int = 5,
+    threshold: float = 0.5,
+    num_actions: int | None = None,
+) -> torch.Tensor:
+    """Where the actions change regime: the steps that start a new segment.
+
+    For each step ``t``, the actions of the ``window`` steps before it are compared with those of the ``window``
+    steps from it on: discrete actions by the total-variation distance between their (add-half smoothed)
+    histograms, continuous actions by the distance between their means in units of the actions' spread (capped
+    at 1). A step starts a segment where this score is a local maximum above ``threshold``; the first step of every
+    trajectory does too.
+
+    Args:
+        action (Tensor): ``[B, T]`` (or ``[B, T, 1]``) integer actions, or ``[B, T, D]`` continuous ones.
+        mask (Tensor): ``[B, T]`` bool, the valid steps (padding after them).
+
+    Keyword Args:
+        window (int): steps on each side. Defaults to 5.
+        threshold (float): the least score of a cut, in ``(0, 1)``. Defaults to 0.5.
+        num_actions (int, optional): A, for discrete actions; default ``max(action) + 1``.
+
+    Returns:
+        ``[B, T]`` bool: ``True`` where a segment starts (always ``False`` on padding).
+
+    Examples:
+        >>> import torch
+        >>> action = torch.tensor([[0] * 8 + [1] * 8])
+        >>> cuts = change_points(action, torch.ones(1, 16, dtype=torch.bool), window=4)
+        >>> cuts.nonzero()[:, 1].tolist()
+        [0, 8]
+    """
+    if not isinstance(window, int) or isinstance(window, bool) or window < 1:
+        raise ValueError(f"window must be a positive int, got {window!r}.")
+    if not 0.0 < float(threshold) < 1.0:
+        raise ValueError(f"threshold must lie in (0, 1), got {threshold!r}.")
+    mask = mask.bool()
+    B, T = mask.shape
+    feats = _action_features(action, num_actions).to(mask.device)
+    continuous = action.is_floating_point()
+    if continuous:
+        valid = feats[mask]
+        spread = valid.std(0).clamp_min(1e-6) if valid.shape[0] > 1 else torch.ones(feats.shape[-1])
+        feats = (feats - valid.mean(0)) / spread
+    feats = feats * mask[..., None]
+    F = feats.shape[-1]
+    csum = torch.cat([feats.new_zeros(B, 1, F), feats.cumsum(1)], 1)
+    length = mask.sum(1)
+    t = torch.arange(T, device=mask.device)[None].expand(B, T)
+    lo = (t - window).clamp_min(0)
+    hi = torch.minimum(t + window, length[:, None])
+
+    def window_sum(i: torch.Tensor) -> torch.Tensor:
+        return torch.gather(csum, 1, i[..., None].expand(B, T, F))
+
+    before = window_sum(t) - window_sum(lo)
+    after = window_sum(hi) - window_sum(t)
+    if continuous:
+        n_before = (t - lo).clamp_min(1)[..., None].float()
+        n_after = (hi - t).clamp_min(1)[..., None].float()
+        score = ((before / n_before - after / n_after).norm(dim=-1) / (2 * F**0.5)).clamp(max=1.0)
+    else:
+        p_before = (before + 0.5) / (before + 0.5).sum(-1, keepdim=True)
+        p_after = (after + 0.5) / (after + 0.5).sum(-1, keepdim=True)
+        score = 0.5 * (p_before - p_after).abs().sum(-1)
+    score = score * mask
+    score[:, 0] = 0
+    left = torch.cat([score.new_zeros(B, 1), score[:, :-1]], 1)
+    right = torch.cat([score[:, 1:], score.new_zeros(B, 1)], 1)
+    cuts = (score >= left) & (score > right) & (score > threshold) & mask
+    cuts[:, 0] = mask[:, 0]
+    return cuts
+
+
+def pretrain_on_segments(
+    options: TensorDictModuleBase,
+    trajectories: TensorDictBase,
+    mask: torch.Tensor,
+    *,
+    num_options: int,
+    action_key: NestedKey = "action",
+    action_space: str = "auto",
+    num_actions: int | None = None,
+    meta_control: TensorDictModuleBase | None = None,
+    termination_key: NestedKey = "termination_logits",
+    window: int = 5,
+    threshold: float = 0.5,
+    num_steps: int = 500,
+    lr: float = 3e-2,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Cuts the demonstrations into segments, clusters the segments by where they end, and clones options from them.
+
+    The segments are the stretches between :func:`change_points`. Each is described by the observation after its
+    last step (where an option that ran it would have terminated); k-means (:func:`kmeans`) groups them into
+    ``num_options`` clusters, every step taking its segment's cluster. Option ``h`` is then cloned on cluster
+    ``h``: its control policy by behaviour cloning on the cluster's steps, its termination by logistic regression
+    (terminate after the last step of each of its segments, continue after the others), and ``meta_control``, if
+    given, to predict the cluster of each segment's first step. A start from these labels lies near an option
+    structure that steps alone cannot show (options that share moves in many states); DDO
+    (:class:`~torchrl_options.DDOLoss`, Fox et al., 2017) refines it. Unlike appendix B's pre-clustering of
+    state-action pairs (:func:`pretrain_on_clusters`), the clusters see time.
+
+    Args:
+        options (TensorDictModuleBase): the options to initialise (modified in place).
+        trajectories (TensorDictBase): ``[B, T]`` trajectories with ``("next", obs)`` entries.
+        mask (Tensor): ``[B, T]`` bool, the valid steps.
+
+    Keyword Args:
+        num_options (int): K.
+        action_key (NestedKey): the action entry.
+        action_space (str): ``"auto"``, ``"categorical"`` or ``"continuous"``.
+        num_actions (int, optional): A, for discrete actions.
+        meta_control (TensorDictModuleBase, optional): a learned meta-control to pre-train as well.
+        termination_key (NestedKey): where the options write their termination logits.
+        window, threshold: see :func:`change_points`. Defaults to 5 and 0.5.
+        num_steps (int): Adam steps of the cloning. Defaults to 500.
+        lr (float): its learning rate. Defaults to 0.03.
+        generator (torch.Generator, optional): seeds the k-means.
+
+    Returns:
+        The cluster label of every step, ``[B, T]`` (0 on padding).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_options import OptionsMLP
+        >>> from torchrl_options.testing import planted_corridor_demonstrations
+        >>> data = planted_corridor_demonstrations(num_trajectories=8, length=30, seed=0)
+        >>> options = OptionsMLP(data["observation"].shape[-1], 2, 2)
+        >>> labels = pretrain_on_segments(options, data, data["collector", "mask"], num_options=2, num_steps=20,
+        ...                               generator=torch.Generator().manual_seed(0))
+        >>> labels.shape == data["collector", "mask"].shape
+        True
+    """
+    mask = mask.bool()
+    B, T = mask.shape
+    action = trajectories.get(action_key)
+    cuts = change_points(action, mask, window=window, threshold=threshold, num_actions=num_actions)
+    segment = cuts.long().cumsum(1)
+    ids = (torch.arange(B, device=mask.device)[:, None] * (T + 1) + segment)[mask]
+    _, inverse = torch.unique(ids, return_inverse=True)
+    num_segments = int(inverse.max()) + 1 if inverse.numel() else 0
+    step = torch.arange(inverse.numel(), device=mask.device)
+    last = torch.zeros(num_segments, dtype=torch.long, device=mask.device).scatter_reduce_(
+        0, inverse, step, "amax", include_self=False
+    )
+    flat = trajectories[mask]
+    flat_next = flat.get("next")
+    next_obs = torch.cat([flat_next.get(k).flatten(1).float() for k in options.in_keys], -1)
+    ends = next_obs[last]
+    ends = (ends - ends.mean(0)) / ends.std(0).clamp_min(1e-6) if num_segments > 1 else ends
+    k = min(num_options, max(num_segments, 1))
+    seg_labels, _ = kmeans(ends, k, generator=generator)
+    counts = torch.bincount(seg_labels, minlength=num_options).tolist()
+    logger.info("segment pre-clustering: %d segments, clusters of %s segments", num_segments, counts)
+    labels = torch.zeros(B, T, dtype=torch.long, device=mask.device)
+    labels[mask] = seg_labels[inverse]
+    # a step is its segment's last (terminate after it) when the next valid step starts a segment or none follows
+    ends_here = torch.zeros_like(mask)
+    ends_here[:, :-1] = cuts[:, 1:] | ~mask[:, 1:]
+    ends_here[:, -1] = True
+    ends_here &= mask
+    # the last valid step of a trajectory may be cut by the data's end, not by a termination: not a target
+    has_next = mask.clone()
+    has_next[:, :-1] &= mask[:, 1:]
+    has_next[:, -1] = False
+    flat_labels = labels[mask]
+    flat_action = flat.get(action_key)
+    act_cols = flat_action.reshape(flat_action.shape[0], -1).to(next_obs.dtype)
+    now_obs = torch.cat([flat.get(k).flatten(1).float() for k in options.in_keys], -1)
+    # identical rows give identical loss terms: train on the distinct ones, weighted by their counts (the same loss)
+    now_rows, now_w = _distinct_rows(torch.cat([now_obs, act_cols, flat_labels[:, None].to(now_obs.dtype)], -1))
+    valid_next = has_next[mask]
+    next_rows, next_w = _distinct_rows(torch.cat(
+        [next_obs, flat_labels[:, None].to(next_obs.dtype), ends_here[mask][:, None].to(next_obs.dtype)], -1
+    )[valid_next])  # fmt: skip
+    next_rows = valid_next.nonzero().squeeze(-1)[next_rows]
+    in_now = flat[now_rows].select(*options.in_keys)
+    in_next = flat_next[next_rows].select(*options.in_keys)
+    action_now, label_now, label_next = flat_action[now_rows], flat_labels[now_rows], flat_labels[next_rows]
+    target_next = ends_here[mask][next_rows].to(now_obs.dtype)
+    start_rows = cuts[mask]
+    params = list(options.parameters()) + (list(meta_control.parameters()) if meta_control is not None else [])
+    opt = torch.optim.Adam(params, lr=lr)
+    for _ in range(num_steps):
+        out = options(in_now.clone(False))
+        log_pi = option_log_probs(out, action_now, action_space=action_space, action_key=action_key)
+        policy = -(log_pi.gather(-1, label_now[:, None]).squeeze(-1) * now_w).sum() / now_w.sum()
+        loss = policy
+        if next_rows.numel():
+            term = options(in_next.clone(False)).get(termination_key).gather(-1, label_next[:, None]).squeeze(-1)
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(term, target_next, reduction="none")
+            loss = loss + (bce * next_w).sum() / next_w.sum()
+        if meta_control is not None and bool(start_rows.any()):
+            meta = meta_control(flat[start_rows].select(*meta_control.in_keys)).get("meta_logits")
+            loss = loss + torch.nn.functional.cross_entropy(meta, flat_labels[start_rows])
         opt.zero_grad()
         loss.backward()
         opt.step()
