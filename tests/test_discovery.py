@@ -181,6 +181,41 @@ def test_segment_clusters_see_options_that_steps_cannot():
     assert acc_segments > 0.55 and acc_segments > acc_steps + 0.15, (acc_segments, acc_steps)
 
 
+@pytest.mark.parametrize("seed", [2, 3])
+def test_segments_clustered_by_actions_see_direction_walks(seed):
+    """Walks that end anywhere (geometric termination) are told apart by how they move, not by where they end."""
+    from torchrl_options.testing import best_matching_accuracy, PLANTED_SUITE
+
+    problem = next(p for p in PLANTED_SUITE if p.name == "geometric-4")
+    data, _ = problem.make(seed)
+    mask = data["collector", "mask"]
+    acc = {}
+    for features in ("end", "actions"):
+        labels = pretrain_on_segments(
+            OptionsMLP(data["observation"].shape[-1], 4, 4), data, mask, num_options=4, num_actions=4, num_steps=1,
+            features=features, generator=torch.Generator().manual_seed(0),
+        )  # fmt: skip
+        acc[features] = best_matching_accuracy(labels, data["true_option"], mask)
+    assert acc["actions"] > 0.7 and acc["actions"] > acc["end"] + 0.2, acc
+    with pytest.raises(ValueError, match="features"):
+        pretrain_on_segments(OptionsMLP(2, 4, 4), data, mask, num_options=4, features="middle")
+
+
+def test_auto_init_mixes_segment_starts_and_leaves_given_options_alone():
+    """init='auto' (the default) draws AUTO_RESTARTS segment starts for fresh modules, none for given options."""
+    from torchrl_options.discovery import AUTO_RESTARTS
+
+    data = planted_corridor_demonstrations(8, 60, seed=0)
+    result = discover_options(data, 2, num_iterations=AUTO_RESTARTS * 5, restart_iterations=5, seed=0, progress=False,
+                              return_info=True)  # fmt: skip
+    assert len(result.restart_log_likelihoods) == AUTO_RESTARTS
+    given = OptionsMLP(data["observation"].shape[-1], 2, 2)
+    before = [p.detach().clone() for p in given.parameters()]
+    after = discover_options(data, 2, options=given, num_iterations=1, m_steps=1, lr=1e-9, seed=0, progress=False)
+    # one optimizer step at a negligible learning rate: the given weights were not re-initialised by a pre-training
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(after.parameters(), before))
+
+
 def test_segment_start_clones_terminations():
     """After the segment pre-training alone, each option terminates where its segments end far more than elsewhere."""
     data = planted_corridor_demonstrations(32, 100, seed=0)

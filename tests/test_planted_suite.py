@@ -81,7 +81,7 @@ def _problem(name):
     return next(p for p in PLANTED_SUITE if p.name == name)
 
 
-@pytest.mark.parametrize("name, seed, rows", [("corridor-2", 1, 64), ("landmarks-3", 0, 96)])
+@pytest.mark.parametrize("name, seed, rows", [("corridor-2", 1, 64), ("landmarks-3", 0, 96), ("landmarks-8", 1, 256)])
 def test_defaults_reach_the_bayes_ceiling_on_small_suite_members(name, seed, rows):
     """discover_options with nothing but K and the seed set: within 3 points of the truth's own posterior."""
     problem = _problem(name)

@@ -1,6 +1,7 @@
 """Option discovery for users: one-call DDO, initialisation, and saving/loading options."""
 from torchrl_options.discovery.discover import (
     as_trajectory_batch,
+    AUTO_RESTARTS,
     converged_at,
     discover_options,
     DEFAULT_RESTARTS,
@@ -16,6 +17,7 @@ from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
 
 __all__ = [
     "as_trajectory_batch",
+    "AUTO_RESTARTS",
     "change_points",
     "converged_at",
     "DEFAULT_RESTARTS",

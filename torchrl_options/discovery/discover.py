@@ -39,7 +39,11 @@ DEFAULT_RESTARTS = 4
 """Starts drawn by :func:`discover_options` when ``restarts`` is left at ``None`` (and fresh modules can be drawn)."""
 
 INITS = ("random", "kmeans", "segments", "auto")
-"""The values of ``discover_options(init=...)``; ``"auto"`` (the default) is ``"segments"`` for fresh modules."""
+"""The values of ``discover_options(init=...)``; ``"auto"`` (the default) starts fresh modules from segments."""
+
+AUTO_RESTARTS = 6
+"""Starts drawn with ``init="auto"`` when ``restarts`` is left at ``None``: of every three, two segment starts
+clustered by where the segments end and one clustered by their actions."""
 
 PAPER_SETTINGS: dict = dict(
     num_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None, init="random"
@@ -497,8 +501,10 @@ def discover_options(
             state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
             the segments clustered by where they end, each option cloned from a cluster:
             :func:`~torchrl_options.discovery.pretrain_on_segments`; every start draws its own clusters), or
-            ``"auto"`` (default): ``"segments"`` for fresh modules given tensordicts, ``"random"`` (the modules as
-            they come) when ``options`` are given or the trajectories come from a replay buffer.
+            ``"auto"`` (default): for fresh modules given tensordicts, segment starts, two of every three clustered
+            by where the segments end and the third by their actions (``features="actions"``), :data:`AUTO_RESTARTS`
+            of them unless ``restarts`` is set; ``"random"`` (the modules as they come) when ``options`` are given
+            or the trajectories come from a replay buffer.
         num_iterations (int): the most iterations (E-steps). Defaults to 1000 (the stopping rule usually ends
             training sooner).
         m_steps (int): optimizer steps per E-step (G-steps); 1 is the paper's Expectation-Gradient. Defaults to 5.
@@ -506,12 +512,13 @@ def discover_options(
             nats over the last ``patience`` iterations (see :func:`converged_at`; meant for full-batch training,
             minibatch estimates are noisy). Defaults to 1e-4; ``None`` runs all ``num_iterations``.
         patience (int): the stopping rule's window, in iterations. Defaults to 20.
-        restarts (int): starts from ``restarts`` random initialisations (or k-means clusterings), each trained for
+        restarts (int): starts from ``restarts`` initialisations (as ``init`` draws them), each trained for
             at most ``restart_iterations`` iterations; the one with the highest training log-likelihood (a
             label-free model selection) is then trained for the rest of ``num_iterations``. The likelihood has
             local optima (two options merged, one unused), which restarts avoid. More than 1 needs the default
-            ``options`` and meta-control and an optimizer factory (not an instance). ``None`` (default): 4 starts
-            when fresh modules can be drawn and ``num_iterations >= 4 * restart_iterations``, else 1.
+            ``options`` and meta-control and an optimizer factory (not an instance). ``None`` (default): n starts
+            when fresh modules can be drawn and ``num_iterations >= n * restart_iterations``, else 1, with n
+            :data:`AUTO_RESTARTS` (6) for ``init="auto"`` and :data:`DEFAULT_RESTARTS` (4) otherwise.
         restart_iterations (int): the iterations given to each start when ``restarts > 1``. Defaults to 40.
         batch_size (int, optional): trajectories per minibatch; ``None`` uses all (or the buffer's batch size).
         optimizer: an optimizer instance over the modules' parameters, or a factory called as
@@ -573,7 +580,8 @@ def discover_options(
     if restarts is None:
         # several short starts are the default whenever fresh modules can be drawn for each; a user's own modules
         # (or optimizer instance) are trained once
-        restarts = DEFAULT_RESTARTS if fresh_modules and num_iterations >= DEFAULT_RESTARTS * restart_iterations else 1
+        default_starts = AUTO_RESTARTS if init == "auto" else DEFAULT_RESTARTS
+        restarts = default_starts if fresh_modules and num_iterations >= default_starts * restart_iterations else 1
     if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 1:
         raise ValueError(f"restarts must be a positive int (or None for the default), got {restarts!r}.")
     if restarts > 1:
@@ -693,10 +701,11 @@ def discover_options(
                 options, data, mask, num_options=num_options, action_key=action_key, action_space=action_space,
                 num_actions=num_actions, meta_control=meta_module, lr=lr, generator=generator,
             )
-        elif start_init == "segments":
+        elif start_init in ("segments", "segments-actions"):
             pretrain_on_segments(
                 options, data, mask, num_options=num_options, action_key=action_key, action_space=action_space,
                 num_actions=num_actions, meta_control=meta_module, generator=generator,
+                features="actions" if start_init == "segments-actions" else "end",
                 termination_key=loss_module.tensor_keys.termination_logits,
             )
         params = list(loss_module.parameters())
@@ -737,6 +746,8 @@ def discover_options(
         start_init = init
         if init == "auto":  # fresh modules start from segments of the demonstrations; given ones as they are
             start_init = "random" if user_options is not None or buffer is not None else "segments"
+            if start_init == "segments" and r % 3 == 2:
+                start_init = "segments-actions"
         loss_module, opt, sched, table = start(table, start_init)
         if r == 0 and table is not None:
             logger.info(

@@ -247,6 +247,7 @@ def pretrain_on_segments(
     num_actions: int | None = None,
     meta_control: TensorDictModuleBase | None = None,
     termination_key: NestedKey = "termination_logits",
+    features: str = "end",
     window: int = 5,
     threshold: float = 0.5,
     num_steps: int = 500,
@@ -277,6 +278,9 @@ def pretrain_on_segments(
         num_actions (int, optional): A, for discrete actions.
         meta_control (TensorDictModuleBase, optional): a learned meta-control to pre-train as well.
         termination_key (NestedKey): where the options write their termination logits.
+        features (str): what the segments are clustered by: ``"end"`` (default), the observation after their last
+            step (options defined by where they lead), or ``"actions"``, their mean action (one-hot for discrete
+            actions: options defined by how they move).
         window, threshold: see :func:`change_points`. Defaults to 5 and 0.5.
         num_steps (int): Adam steps of the cloning. Defaults to 500.
         lr (float): its learning rate. Defaults to 0.03.
@@ -296,6 +300,8 @@ def pretrain_on_segments(
         >>> labels.shape == data["collector", "mask"].shape
         True
     """
+    if features not in ("end", "actions"):
+        raise ValueError(f"features must be 'end' or 'actions', got {features!r}.")
     mask = mask.bool()
     B, T = mask.shape
     action = trajectories.get(action_key)
@@ -311,10 +317,15 @@ def pretrain_on_segments(
     flat = trajectories[mask]
     flat_next = flat.get("next")
     next_obs = torch.cat([flat_next.get(k).flatten(1).float() for k in options.in_keys], -1)
-    ends = next_obs[last]
-    ends = (ends - ends.mean(0)) / ends.std(0).clamp_min(1e-6) if num_segments > 1 else ends
+    if features == "end":
+        points = next_obs[last]
+    else:  # the segment's mean action (discrete: its action histogram)
+        acts = _action_features(action, num_actions).to(next_obs.device)[mask]
+        points = torch.zeros(num_segments, acts.shape[-1], device=acts.device).index_add_(0, inverse, acts)
+        points = points / torch.bincount(inverse, minlength=num_segments).clamp_min(1)[:, None].to(points.dtype)
+    points = (points - points.mean(0)) / points.std(0).clamp_min(1e-6) if num_segments > 1 else points
     k = min(num_options, max(num_segments, 1))
-    seg_labels, _ = kmeans(ends, k, generator=generator)
+    seg_labels, _ = kmeans(points, k, generator=generator)
     counts = torch.bincount(seg_labels, minlength=num_options).tolist()
     logger.info("segment pre-clustering: %d segments, clusters of %s segments", num_segments, counts)
     labels = torch.zeros(B, T, dtype=torch.long, device=mask.device)

@@ -110,7 +110,9 @@ def discover_hierarchy(
         num_actions (int, optional): A; default: the hierarchy's, or ``max(action) + 1`` over the data.
         obs_keys, action_key, num_cells, activation, architecture: as in :func:`~torchrl_options.discover_options`,
             for every level's modules.
-        init (str): level-1 initialisation, ``"random"`` or ``"kmeans"``.
+        init (str): level-1 initialisation, one of :data:`~torchrl_options.discovery.INITS` (see
+            :func:`~torchrl_options.discover_options`). Defaults to ``"random"`` (the planted two-level benchmark
+            was measured with it).
         num_iterations (int or sequence of int): the most iterations (E-steps), for all levels or per level.
             Defaults to 1000 (the stopping rule usually ends a level sooner).
         m_steps (int or sequence of int): optimizer steps per E-step, for all levels or per level: 1 is the paper's
