@@ -79,9 +79,14 @@ def test_default_restarts_only_with_fresh_modules():
     data = planted_corridor_demonstrations(8, 30, seed=1)
     result = discover_options(data, 2, num_iterations=160, restart_iterations=10, seed=0, progress=False,
                               return_info=True)  # fmt: skip
-    assert len(result.restart_log_likelihoods) == 4
+    from torchrl_options.discovery import AUTO_RESTARTS, DEFAULT_RESTARTS
+
+    assert len(result.restart_log_likelihoods) == AUTO_RESTARTS  # init="auto", the default
+    random = discover_options(data, 2, init="random", num_iterations=160, restart_iterations=10, seed=0,
+                              progress=False, return_info=True)  # fmt: skip
+    assert len(random.restart_log_likelihoods) == DEFAULT_RESTARTS
     short = discover_options(data, 2, num_iterations=20, seed=0, progress=False, return_info=True)
-    assert short.restart_log_likelihoods == []  # too few iterations for four starts of restart_iterations
+    assert short.restart_log_likelihoods == []  # too few iterations for the starts of restart_iterations
     from torchrl_options import OptionsMLP
 
     own = discover_options(data, 2, options=OptionsMLP(2, 2, 2), num_iterations=160, restart_iterations=10,

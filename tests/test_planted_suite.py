@@ -111,3 +111,44 @@ def test_defaults_reach_the_bayes_ceiling_on_the_whole_suite(problem, seed):
     acc, ll = posterior_accuracy(lp, data["true_option"])
     # within 2 points of the ceiling, or (not identifiable at this data size) a likelihood at or above the truth's
     assert acc >= ceiling - 0.02 or ll >= truth_ll, (acc, ceiling, ll, truth_ll)
+
+
+def _suite_rows(name):
+    """The rows of a kept ``results/planted_suite/<name>.csv`` (one per problem and seed)."""
+    import csv
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "results" / "planted_suite" / f"{name}.csv"
+    with open(path, newline="") as f:
+        return [dict(r, seed=int(r["seed"]), **{k: float(r[k]) for k in ("ceiling", "accuracy", "ll", "truth_ll")})
+                for r in csv.DictReader(f)]  # fmt: skip
+
+
+def suite_table_row(problem, rows):
+    """The planted-suite page's table row of ``problem``: seeds, ceiling, mean and worst labels, worst gap,
+    likelihood vs the truth's, seeds near the ceiling and seeds at or above the truth's likelihood."""
+    runs = [r for r in rows if r["problem"] == problem]
+    n = len(runs)
+    mean = lambda k: sum(r[k] for r in runs) / n  # noqa: E731
+    dll = [r["ll"] - r["truth_ll"] for r in runs]
+    near = sum(r["ceiling"] - r["accuracy"] <= 0.02 and r["ll"] >= r["truth_ll"] - 1e-3 for r in runs)
+    above = sum(r["ll"] >= r["truth_ll"] for r in runs)
+    return (f"| {problem} | {n} | {mean('ceiling'):.3f} | {mean('accuracy'):.3f} | "
+            f"{min(r['accuracy'] for r in runs):.3f} | {100 * max(r['ceiling'] - r['accuracy'] for r in runs):.1f} | "
+            f"{sum(dll) / n:+.4f} (worst {min(dll):+.4f}) | {near}/{n} | {above}/{n} |")  # fmt: skip
+
+
+def test_kept_suite_figures_are_quoted():
+    """The defaults' table on docs/experiments/planted_suite.md is recomputed from results/planted_suite/defaults.csv
+    (and the random starts' from random_starts.csv)."""
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "experiments" / "planted_suite.md").read_text()
+    for name in ("defaults", "random_starts"):
+        rows = _suite_rows(name)
+        problems = list(dict.fromkeys(r["problem"] for r in rows))
+        assert set(problems) == {p.name for p in PLANTED_SUITE}
+        for problem in problems:
+            assert sum(r["problem"] == problem for r in rows) == 10, (name, problem)
+            row = suite_table_row(problem, rows)
+            assert row in page, f"{name}: {row}"
