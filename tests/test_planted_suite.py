@@ -139,8 +139,8 @@ def suite_table_row(problem, rows):
 
 
 def test_kept_suite_figures_are_quoted():
-    """The defaults' table on docs/experiments/planted_suite.md is recomputed from results/planted_suite/defaults.csv
-    (and the random starts' from random_starts.csv)."""
+    """The tables on docs/experiments/planted_suite.md are recomputed from the kept results/planted_suite/*.csv: the
+    defaults', the random starts', segment starts with the width chosen on held-out data, the two-level problem."""
     from pathlib import Path
 
     page = (Path(__file__).resolve().parents[1] / "docs" / "experiments" / "planted_suite.md").read_text()
@@ -150,5 +150,14 @@ def test_kept_suite_figures_are_quoted():
         assert set(problems) == {p.name for p in PLANTED_SUITE}
         for problem in problems:
             assert sum(r["problem"] == problem for r in rows) == 10, (name, problem)
+            row = suite_table_row(problem, rows)
+            assert row in page, f"{name}: {row}"
+    # the runs on part of the suite: segment starts with num_cells="auto", the two-level problem at 10 seeds
+    for name, expected in (("segments_auto_width", {"landmarks-8", "walls-4", "geometric-4", "landmarks-3"}),
+                           ("two_level_10_seeds", {"two-level-4x4"})):  # fmt: skip
+        rows = _suite_rows(name)
+        assert {r["problem"] for r in rows} == expected
+        for problem in expected:
+            assert sorted(r["seed"] for r in rows if r["problem"] == problem) == list(range(10)), (name, problem)
             row = suite_table_row(problem, rows)
             assert row in page, f"{name}: {row}"

@@ -467,9 +467,10 @@ def discover_options(
 
     The defaults were chosen on a suite of planted problems whose truth is known
     (:data:`~torchrl_options.testing.PLANTED_SUITE`, ``benchmarks/bench_planted_suite.py``): 8 tanh units, 5 G-steps
-    per E-step at learning rate 0.03, 4 starts of 40 iterations selected by likelihood, then up to 1000 iterations
-    with the stopping rule ``tol=1e-4``. Wider networks fit small data sets better than the truth does with other
-    labels; the paper's 2 units, one start and plain Expectation-Gradient stop in local optima on several problems.
+    per E-step at learning rate 0.03, 6 segment starts (``init="auto"``) of 40 iterations selected by likelihood,
+    then up to 1000 iterations with the stopping rule ``tol=1e-4``. Wider networks fit small data sets better than
+    the truth does with other labels; the paper's 2 units, one start and plain Expectation-Gradient stop in local
+    optima on several problems, and random starts miss the optimum next to the truth when options share moves.
     :data:`PAPER_SETTINGS` gives the paper's settings (``discover_options(data, K, **PAPER_SETTINGS)``). The result
     (``return_info=True``) reports each start's likelihood, each option's usage and duplicated options, and a
     warning is logged when they suggest a local optimum (:func:`~torchrl_options.discovery.option_diagnostics`).
