@@ -240,9 +240,26 @@ def test_change_points_bad_arguments():
     for window in (0, -2, 1.5, True):
         with pytest.raises(ValueError, match="window"):
             change_points(action, mask, window=window)
-    for threshold in (0.0, 1.0, -1, float("nan")):
+    for threshold in (0.0, 1.0, -1, float("nan"), "0.5"):
         with pytest.raises(ValueError, match="threshold"):
             change_points(action, mask, threshold=threshold)
+    for num_actions in (0, 1.5):  # actions 0..1 need num_actions >= 2
+        with pytest.raises(ValueError, match="num_actions"):
+            change_points(torch.tensor([[0, 1, 1, 0, 1]]), mask, num_actions=num_actions)
+    with pytest.raises(ValueError, match="mask"):
+        change_points(action, torch.ones(2, 5, dtype=torch.bool))
+
+
+def test_segment_start_bad_arguments():
+    data = planted_corridor_demonstrations(4, 20, seed=0)
+    mask = data["collector", "mask"]
+    options = OptionsMLP(data["observation"].shape[-1], 2, 2)
+    for name, value in (("num_options", 0), ("num_options", 1.0), ("num_steps", 0), ("num_steps", -1),
+                        ("lr", 0.0), ("lr", float("nan")), ("lr", "0.1")):  # fmt: skip
+        kwargs = dict(num_options=2, num_steps=5, generator=torch.Generator().manual_seed(0))
+        kwargs[name] = value
+        with pytest.raises(ValueError, match=name):
+            pretrain_on_segments(options, data, mask, **kwargs)
 
 
 def test_bad_arguments():

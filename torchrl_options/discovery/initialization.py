@@ -196,9 +196,18 @@ def change_points(
     """
     if not isinstance(window, int) or isinstance(window, bool) or window < 1:
         raise ValueError(f"window must be a positive int, got {window!r}.")
-    if not 0.0 < float(threshold) < 1.0:
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0:
         raise ValueError(f"threshold must lie in (0, 1), got {threshold!r}.")
     mask = mask.bool()
+    if mask.dim() != 2 or action.shape[:2] != mask.shape:
+        raise ValueError(
+            f"change_points needs a [B, T] mask and [B, T, ...] actions, got mask {tuple(mask.shape)} and action "
+            f"{tuple(action.shape)}."
+        )
+    if num_actions is not None and not action.is_floating_point():
+        top = int(action[mask].max()) + 1 if bool(mask.any()) else 0
+        if not isinstance(num_actions, int) or isinstance(num_actions, bool) or num_actions < max(top, 1):
+            raise ValueError(f"num_actions must be an int above every action (max {top - 1}), got {num_actions!r}.")
     B, T = mask.shape
     feats = _action_features(action, num_actions).to(mask.device)
     continuous = action.is_floating_point()
@@ -302,6 +311,12 @@ def pretrain_on_segments(
     """
     if features not in ("end", "actions"):
         raise ValueError(f"features must be 'end' or 'actions', got {features!r}.")
+    if not isinstance(num_options, int) or isinstance(num_options, bool) or num_options < 1:
+        raise ValueError(f"num_options must be a positive int, got {num_options!r}.")
+    if not isinstance(num_steps, int) or isinstance(num_steps, bool) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive int, got {num_steps!r}.")
+    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0.0 < lr < float("inf"):
+        raise ValueError(f"lr must be a positive finite number, got {lr!r}.")
     mask = mask.bool()
     B, T = mask.shape
     action = trajectories.get(action_key)
