@@ -6,12 +6,16 @@ Its ``H1`` (and ``A``, when it ran one) are compared with the reference's ``H1``
 bootstrap), next to each run's own ``H1 - A``. An ablation that did not run ``A`` (``"conditions=[H1]"``: a setting
 that does not touch the actions-only agent, such as the options' encoding or the discount inside options) is
 paired with the reference's ``A``, whose phase 1 it shares; the script checks that the phase-1 returns agree.
+An ablation whose returns are on another reward scale than the reference's (the env semantics: clipped rewards
+against the paper's raw ones, read from each run's ``settings.json``) needs its own ``A``: only its own
+``H1 - A`` is compared, and its aggregates are computed apart.
 
     python recipes/atari_ablation.py results/atari_cpu_vec_paper_env bytes=outputs/abl_bytes \\
         step=outputs/abl_step projenv=outputs/abl_projenv --phase1-episodes 150 --out outputs/ablations
 """
 import argparse
 import gzip
+import json
 import logging
 import tempfile
 from pathlib import Path
@@ -35,6 +39,16 @@ def read_rows(folder: Path) -> list[dict]:
         return ResultsLog(path).rows()
 
 
+def reward_scale(folder: str | Path) -> str:
+    """``"raw"`` or ``"clipped"``: the rewards a run's returns sum, from its ``settings.json``."""
+    path = Path(folder) / "settings.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{folder}: no settings.json (needed to tell the run's reward scale)")
+    settings = json.loads(path.read_text())
+    paper_env = settings.get("atari.env_semantics", "project") == "paper"
+    return "raw" if paper_env or not settings.get("atari.clip_rewards", True) else "clipped"
+
+
 def fmt(interval) -> str:
     return f"{interval[0]:+.2f} [{interval[1]:+.2f}, {interval[2]:+.2f}]"
 
@@ -50,6 +64,7 @@ def main(argv=None) -> str:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     p1 = args.phase1_episodes
     reference = [r for r in read_rows(Path(args.reference)) if r["condition"] in ("A", "H1")]
+    reference_scale = reward_scale(Path(args.reference))
     rows = list(reference)
     ablations = []
     for item in args.ablations:
@@ -58,6 +73,10 @@ def main(argv=None) -> str:
             parser.error(f"ablations must be given as label=directory, got {item!r}")
         own = read_rows(Path(folder))
         has_a = any(r["condition"] == "A" for r in own)
+        same_scale = reward_scale(Path(folder)) == reference_scale
+        if not same_scale and not has_a:
+            raise SystemExit(f"{label}: its returns are on another reward scale than the reference's; run it with A "
+                             "(its own baseline)")  # fmt: skip
         for r in own:
             if r["condition"] in ("A", "H1"):
                 rows.append(dict(r, condition=f"{r['condition']}-{label}"))
@@ -71,7 +90,7 @@ def main(argv=None) -> str:
             if not common or differ:
                 raise SystemExit(f"{label}: phase 1 differs from the reference's on {differ} of {len(common)} "
                                  "episodes; run it with A (its own baseline)")  # fmt: skip
-        ablations.append((label, f"A-{label}" if has_a else "A"))
+        ablations.append((label, f"A-{label}" if has_a else "A", same_scale))
 
     lines = [
         f"# One divergence at a time, against `{args.reference}`\n",
@@ -84,23 +103,38 @@ def main(argv=None) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     ref_gap = {c.game: c for c in atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window)}
-    pairs = []
-    for label, baseline in ablations:
-        effect = atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window,
-                                  condition=f"H1-{label}", baseline="H1")  # fmt: skip
+    pairs, apart = [], []
+    for label, baseline, same_scale in ablations:
         gap = {c.game: c for c in atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window,
                                                    condition=f"H1-{label}", baseline=baseline)}  # fmt: skip
-        for c in effect:
-            lines.append(
-                f"| {label} | {c.game} | {c.num_seeds} | {c.baseline_episodes[0]:.2f} | {c.options_episodes[0]:.2f} | "
-                f"{fmt(c.diff_episodes)} | {interval_verdict(c.diff_episodes)} | "
-                f"{fmt(ref_gap[c.game].diff_episodes) if c.game in ref_gap else '-'} | "
-                f"{fmt(gap[c.game].diff_episodes) if c.game in gap else '-'} |"
-            )
-        pairs += [(f"H1-{label}", "H1"), (f"H1-{label}", baseline)]
+        if same_scale:
+            effect = atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window,
+                                      condition=f"H1-{label}", baseline="H1")  # fmt: skip
+            for c in effect:
+                lines.append(
+                    f"| {label} | {c.game} | {c.num_seeds} | {c.baseline_episodes[0]:.2f} | "
+                    f"{c.options_episodes[0]:.2f} | {fmt(c.diff_episodes)} | {interval_verdict(c.diff_episodes)} | "
+                    f"{fmt(ref_gap[c.game].diff_episodes) if c.game in ref_gap else '-'} | "
+                    f"{fmt(gap[c.game].diff_episodes) if c.game in gap else '-'} |"
+                )
+            pairs += [(f"H1-{label}", "H1"), (f"H1-{label}", baseline)]
+        else:  # returns on another reward scale: only the run's own H1 - A compares
+            for game, c in gap.items():
+                lines.append(
+                    f"| {label} | {game} | {c.num_seeds} | {ref_gap[game].options_episodes[0]:.2f} | "
+                    f"{c.options_episodes[0]:.2f} (another reward scale) | - | {interval_verdict(c.diff_episodes)} "
+                    f"(own H1 - A) | {fmt(ref_gap[game].diff_episodes) if game in ref_gap else '-'} | "
+                    f"{fmt(c.diff_episodes)} |"
+                )
+            apart.append((label, [(f"H1-{label}", baseline)]))
     agg = atari_aggregates(rows, phase1_episodes=p1, pairs=[("H1", "A")] + pairs)
     if agg is not None:
         lines += ["", "## Over games", "", aggregates_markdown(agg, score_name="mean phase-3 training return")]
+    for label, own_pairs in apart:
+        agg = atari_aggregates(rows, phase1_episodes=p1, pairs=own_pairs)
+        if agg is not None:
+            lines += ["", f"## Over games, {label} (its own reward scale, normalised apart)", "",
+                      aggregates_markdown(agg, score_name="mean phase-3 training return")]  # fmt: skip
     text = "\n".join(lines) + "\n"
     if args.out:
         out = Path(args.out)

@@ -194,15 +194,43 @@ def test_kept_ablation_results():
         os.path.join(results, "atari_cpu_vec_paper_env"),
         f"bytes={os.path.join(results, 'atari_cpu_vec_ablation_bytes')}",
         f"step={os.path.join(results, 'atari_cpu_vec_ablation_step')}",
+        f"projenv={os.path.join(results, 'atari_cpu_vec_ablation_projenv')}",
         "--phase1-episodes", "150",
     ])  # fmt: skip
-    rows = [line for line in text.splitlines() if line.startswith(("| bytes |", "| step |"))]
-    assert len(rows) == 2 * len(GAMES)
+    rows = [line for line in text.splitlines() if line.startswith(("| bytes |", "| step |", "| projenv |"))]
+    assert len(rows) == 3 * len(GAMES)
+    # the env ablation sums clipped rewards: only its own H1 - A is compared, never its H1 with the reference's
+    assert all("another reward scale" in line for line in rows if line.startswith("| projenv |"))
     with open(os.path.join(ROOT, "docs", "experiments", "atari_ram.md")) as f:
         page = f.read()
     for row in rows:
         assert row in page, row
-    over_games = [line for line in text.splitlines() if line.startswith(("| H1-bytes vs", "| H1-step vs"))]
-    assert len(over_games) == 4
+    over_games = [line for line in text.splitlines()
+                  if line.startswith(("| H1-bytes vs", "| H1-step vs", "| H1-projenv vs"))]  # fmt: skip
+    assert len(over_games) == 5 and not any(line.startswith("| H1-projenv vs H1 ") for line in over_games)
     for line in over_games:
         assert line in page, line
+
+
+def test_ablation_on_another_reward_scale_needs_its_own_baseline(tmp_path):
+    """An ablation whose returns sum clipped rewards while the reference's are raw cannot borrow the reference's A."""
+    import importlib.util
+    import json
+    import shutil
+
+    spec = importlib.util.spec_from_file_location("atari_ablation", os.path.join(ROOT, "recipes", "atari_ablation.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    results = os.path.join(ROOT, "results")
+    h1_only = tmp_path / "h1_only"
+    h1_only.mkdir()
+    shutil.copy(os.path.join(results, "atari_cpu_vec_ablation_bytes", "results.csv.gz"), h1_only)
+    with open(os.path.join(results, "atari_cpu_vec_ablation_bytes", "settings.json")) as f:
+        settings = json.load(f)
+    (h1_only / "settings.json").write_text(json.dumps(dict(settings, **{"atari.env_semantics": "project"})))
+    assert module.reward_scale(h1_only) == "clipped"
+    assert module.reward_scale(os.path.join(results, "atari_cpu_vec_paper_env")) == "raw"
+    with pytest.raises(SystemExit, match="another reward scale"):
+        module.main([os.path.join(results, "atari_cpu_vec_paper_env"), f"clipped={h1_only}", "--phase1-episodes", "150"])
+    with pytest.raises(FileNotFoundError, match="settings.json"):
+        module.reward_scale(tmp_path)
