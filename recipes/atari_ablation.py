@@ -44,7 +44,12 @@ def reward_scale(folder: str | Path) -> str:
     path = Path(folder) / "settings.json"
     if not path.exists():
         raise FileNotFoundError(f"{folder}: no settings.json (needed to tell the run's reward scale)")
-    settings = json.loads(path.read_text())
+    try:
+        settings = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(settings, dict):
+        raise ValueError(f"{path}: expected a JSON object of settings, got {type(settings).__name__}")
     paper_env = settings.get("atari.env_semantics", "project") == "paper"
     return "raw" if paper_env or not settings.get("atari.clip_rewards", True) else "clipped"
 
@@ -64,7 +69,7 @@ def main(argv=None) -> str:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     p1 = args.phase1_episodes
     reference = [r for r in read_rows(Path(args.reference)) if r["condition"] in ("A", "H1")]
-    reference_scale = reward_scale(Path(args.reference))
+    reference_scale = reward_scale(args.reference)
     rows = list(reference)
     ablations = []
     for item in args.ablations:
@@ -73,7 +78,7 @@ def main(argv=None) -> str:
             parser.error(f"ablations must be given as label=directory, got {item!r}")
         own = read_rows(Path(folder))
         has_a = any(r["condition"] == "A" for r in own)
-        same_scale = reward_scale(Path(folder)) == reference_scale
+        same_scale = reward_scale(folder) == reference_scale
         if not same_scale and not has_a:
             raise SystemExit(f"{label}: its returns are on another reward scale than the reference's; run it with A "
                              "(its own baseline)")  # fmt: skip
@@ -121,7 +126,8 @@ def main(argv=None) -> str:
         else:  # returns on another reward scale: only the run's own H1 - A compares
             for game, c in gap.items():
                 lines.append(
-                    f"| {label} | {game} | {c.num_seeds} | {ref_gap[game].options_episodes[0]:.2f} | "
+                    f"| {label} | {game} | {c.num_seeds} | "
+                    f"{f'{ref_gap[game].options_episodes[0]:.2f}' if game in ref_gap else '-'} | "
                     f"{c.options_episodes[0]:.2f} (another reward scale) | - | {interval_verdict(c.diff_episodes)} "
                     f"(own H1 - A) | {fmt(ref_gap[game].diff_episodes) if game in ref_gap else '-'} | "
                     f"{fmt(c.diff_episodes)} |"

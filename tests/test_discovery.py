@@ -254,11 +254,12 @@ def test_segment_start_bad_arguments():
     data = planted_corridor_demonstrations(4, 20, seed=0)
     mask = data["collector", "mask"]
     options = OptionsMLP(data["observation"].shape[-1], 2, 2)
-    for name, value in (("num_options", 0), ("num_options", 1.0), ("num_steps", 0), ("num_steps", -1),
-                        ("lr", 0.0), ("lr", float("nan")), ("lr", "0.1")):  # fmt: skip
+    for name, value, error in (("num_options", 0, ValueError), ("num_options", 1.0, TypeError),
+                               ("num_steps", 0, ValueError), ("num_steps", -1, ValueError), ("lr", 0.0, ValueError),
+                               ("lr", float("nan"), ValueError), ("lr", "0.1", ValueError)):  # fmt: skip
         kwargs = dict(num_options=2, num_steps=5, generator=torch.Generator().manual_seed(0))
         kwargs[name] = value
-        with pytest.raises(ValueError, match=name):
+        with pytest.raises(error, match=name):
             pretrain_on_segments(options, data, mask, **kwargs)
 
 

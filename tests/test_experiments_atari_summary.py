@@ -234,3 +234,9 @@ def test_ablation_on_another_reward_scale_needs_its_own_baseline(tmp_path):
         module.main([os.path.join(results, "atari_cpu_vec_paper_env"), f"clipped={h1_only}", "--phase1-episodes", "150"])
     with pytest.raises(FileNotFoundError, match="settings.json"):
         module.reward_scale(tmp_path)
+    (tmp_path / "settings.json").write_text("{not json")
+    with pytest.raises(ValueError, match="settings.json"):
+        module.reward_scale(tmp_path)
+    (tmp_path / "settings.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="JSON object"):
+        module.reward_scale(tmp_path)

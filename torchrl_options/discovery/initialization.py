@@ -16,6 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.discovery._validation import check_int
 from torchrl_options.objectives.ddo import option_log_probs
 
 __all__ = ["change_points", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
@@ -311,10 +312,8 @@ def pretrain_on_segments(
     """
     if features not in ("end", "actions"):
         raise ValueError(f"features must be 'end' or 'actions', got {features!r}.")
-    if not isinstance(num_options, int) or isinstance(num_options, bool) or num_options < 1:
-        raise ValueError(f"num_options must be a positive int, got {num_options!r}.")
-    if not isinstance(num_steps, int) or isinstance(num_steps, bool) or num_steps < 1:
-        raise ValueError(f"num_steps must be a positive int, got {num_steps!r}.")
+    check_int(num_options, "num_options", minimum=1)
+    check_int(num_steps, "num_steps", minimum=1)
     if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0.0 < lr < float("inf"):
         raise ValueError(f"lr must be a positive finite number, got {lr!r}.")
     mask = mask.bool()
