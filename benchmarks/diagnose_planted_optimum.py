@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 import torchrl_options.discovery.tabulated as tabulated
-from torchrl_options import DDOLoss, OptionsMLP, discover_options
+from torchrl_options import DDOLoss, GaussianOptionsMLP, OptionsMLP, discover_options
 from torchrl_options.testing.planted_suite import PLANTED_SUITE, posterior_accuracy
 
 
@@ -43,13 +43,25 @@ def split(num_rows: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return perm[held:], perm[:held]
 
 
-def oracle_options(train, num_options: int, num_cells: int, steps: int = 1500) -> OptionsMLP:
-    """Options cloned from the true labels: each policy on its option's steps, each termination on the true switches."""
+def oracle_options(train, num_options: int, num_cells: int, action_space: str, steps: int = 1500):
+    """Options cloned from the true labels: each policy on its option's steps, each termination on the true switches.
+
+    The options are built as ``discover_options`` builds fresh ones (an :class:`OptionsMLP`, or a
+    :class:`GaussianOptionsMLP` started at the demonstrations' action spread) and trained by Adam on the
+    log-likelihood of the true option's action and of the true termination at ``s_{t+1}``, both read from
+    :meth:`DDOLoss.log_probabilities` (so the same inputs the E-step sees).
+    """
     obs_dim = train["observation"].shape[-1]
-    num_actions = int(train["action"].max()) + 1
-    options = OptionsMLP(obs_dim, num_actions, num_options, num_cells=num_cells)
     mask = train["collector", "mask"]
-    true_option = train["true_option"]
+    if action_space == "categorical":
+        num_actions = int(train["action"].max()) + 1
+        options = OptionsMLP(obs_dim, num_actions, num_options, num_cells=num_cells)
+    else:
+        spread = min(max(float(train["action"][mask].std(0).mean()), 1e-2), 1.0)
+        options = GaussianOptionsMLP(obs_dim, train["action"].shape[-1], num_options, num_cells=num_cells,
+                                     init_scale=spread, min_scale=min(1e-3, spread / 10))  # fmt: skip
+    loss = DDOLoss(options, action_space=action_space)
+    true_option = train["true_option"].clamp_min(0)[..., None]
     switch_next = torch.zeros_like(mask)
     switch_next[:, :-1] = train["true_switch"][:, 1:]
     has_next = mask.clone()
@@ -57,16 +69,13 @@ def oracle_options(train, num_options: int, num_cells: int, steps: int = 1500) -
     has_next[:, -1] = False
     optimizer = torch.optim.Adam(options.parameters(), lr=0.03)
     for _ in range(steps):
-        logits = options(train.select("observation"))["option_logits"]
-        index = train["action"][..., None, None].expand(*logits.shape[:-1], 1)
-        log_pi = logits.log_softmax(-1).gather(-1, index).squeeze(-1)
-        policy = -(log_pi.gather(-1, true_option[..., None]).squeeze(-1) * mask).sum() / mask.sum()
-        term_logits = options(train["next"].select("observation"))["termination_logits"]
-        term = term_logits.gather(-1, true_option[..., None]).squeeze(-1)
-        bce = F.binary_cross_entropy_with_logits(term, switch_next.float(), reduction="none")
-        loss = policy + (bce * has_next).sum() / has_next.sum()
+        p = loss.log_probabilities(train)
+        policy = -(p["log_pi"].gather(-1, true_option).squeeze(-1) * mask).sum() / mask.sum()
+        term = torch.where(switch_next, p["log_term"].gather(-1, true_option).squeeze(-1),
+                           p["log_cont"].gather(-1, true_option).squeeze(-1))  # fmt: skip
+        objective = policy - (term * has_next).sum() / has_next.sum()
         optimizer.zero_grad()
-        loss.backward()
+        objective.backward()
         optimizer.step()
     return options
 
@@ -100,8 +109,6 @@ def main() -> None:
     torch.set_num_threads(1)
     problem = next(p for p in PLANTED_SUITE if p.name == args.problem)
     overrides = json.loads(args.set)
-    if problem.action_space != "categorical" and args.mode == "oracle":
-        parser.error("--mode oracle supports the categorical problems only")
     counter = [0]
     if args.mode == "anneal":
         tabulated.forward_backward = tempered_e_step(args.beta0, args.anneal, counter)
@@ -112,7 +119,8 @@ def main() -> None:
         kwargs = dict(seed=seed, progress=False, return_info=True, action_space=problem.action_space, **overrides)
         if args.mode == "oracle":
             torch.manual_seed(seed)
-            kwargs["options"] = oracle_options(data[train_rows], problem.num_options, kwargs.pop("num_cells", 8))
+            kwargs["options"] = oracle_options(data[train_rows], problem.num_options, kwargs.pop("num_cells", 8),
+                                               problem.action_space)  # fmt: skip
             kwargs["restarts"] = 1
         start = time.process_time()
         result = discover_options(data[train_rows], problem.num_options, **kwargs)

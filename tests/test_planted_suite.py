@@ -64,6 +64,16 @@ def test_gaussian_demonstrations_ceiling_is_high_and_likelihood_finite():
     assert data["action"].is_floating_point() and data["action"].shape[-1] == 2
     ceiling, ll = posterior_accuracy(truth, data["true_option"])
     assert ceiling > 0.95 and math.isfinite(ll)
+    # true_switch marks where an option starts: the first step, and every change of option (a termination may also
+    # redraw the same option, so not every switch changes it)
+    option, switch = data["true_option"], data["true_switch"]
+    assert switch.dtype == torch.bool and switch[:, 0].all()
+    changed = option[:, 1:] != option[:, :-1]
+    assert not (changed & ~switch[:, 1:]).any()
+    assert (switch[:, 1:] & ~changed).any()
+    # a termination happens at the state reached: the truth's termination probability there is the planted one
+    term = truth["log_term"].exp().gather(-1, option[..., None]).squeeze(-1)
+    assert term[:, :-1][switch[:, 1:]].mean() > term[:, :-1][~switch[:, 1:]].mean() + 0.3
 
 
 def test_suite_problems_are_reproducible_and_varied():

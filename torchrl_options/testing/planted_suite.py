@@ -277,7 +277,8 @@ def planted_gaussian_demonstrations(
 
     Returns:
         ``(data, truth)``: the ``[B, T_max]`` demonstrations (``"observation"`` ``[.., 2]``, float ``"action"``,
-        mask and ``"true_option"``) and the truth's E-step inputs (float64).
+        mask, ``"true_option"`` and ``"true_switch"``: an option starts at the step, the same one redrawn included)
+        and the truth's E-step inputs (float64).
     """
     g = torch.Generator().manual_seed(seed)
     goal = torch.tensor(goals)
@@ -290,14 +291,15 @@ def planted_gaussian_demonstrations(
 
     s = torch.rand(B, 2, generator=g)
     h = torch.randint(K, (B,), generator=g)
-    obs, acts, nxt, opts = [], [], [], []
+    switch = torch.ones(B, dtype=torch.bool)
+    obs, acts, nxt, opts, switches = [], [], [], [], []
     for _ in range(T):
         a = gain * (goal[h] - s) + scale * torch.randn(B, 2, generator=g)
         s_next = (s + a).clamp(0, 1)
-        obs.append(s), acts.append(a), nxt.append(s_next), opts.append(h)
+        obs.append(s), acts.append(a), nxt.append(s_next), opts.append(h), switches.append(switch)
         stop = torch.rand(B, generator=g) < psi(s_next).gather(1, h[:, None]).squeeze(1)
         h = torch.where(stop, torch.randint(K, (B,), generator=g), h)
-        s = s_next
+        s, switch = s_next, stop
     mask = torch.arange(T)[None] < length[:, None]
     data = TensorDict(
         {
@@ -306,6 +308,7 @@ def planted_gaussian_demonstrations(
             "next": {"observation": torch.stack(nxt, 1)},
             ("collector", "mask"): mask,
             "true_option": torch.stack(opts, 1),
+            "true_switch": torch.stack(switches, 1),
         },
         batch_size=[B, T],
     )
