@@ -101,15 +101,18 @@ def main(argv=None) -> str:
         f"# One divergence at a time, against `{args.reference}`\n",
         "Per game: mean phase-3 training return over the seeds both runs finished, and the paired per-seed "
         "difference with its 95% Student-t interval (verdict \"ahead\" / \"behind\" when it excludes 0). "
-        "`H1 - A` is each run's own gap (an ablation without its own `A` uses the reference's, whose phase 1 it "
-        "shares).\n",
+        "`H1 - A` is each run's own gap on the same seeds (an ablation without its own `A` uses the reference's, "
+        "whose phase 1 it shares).\n",
         "| ablation | game | seeds | reference H1 | ablation H1 | ablation H1 - reference H1 | verdict | "
         "reference H1 - A | ablation H1 - A |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    ref_gap = {c.game: c for c in atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window)}
     pairs, apart = [], []
     for label, baseline, same_scale in ablations:
+        # the reference's own H1 - A on the seeds this ablation ran, so that every column of a row has the same seeds
+        seeds = {(r["setting"], r["seed"]) for r in rows if r["condition"] == f"H1-{label}"}
+        ref_gap = {c.game: c for c in atari_comparison([r for r in reference if (r["setting"], r["seed"]) in seeds],
+                                                       phase1_episodes=p1, final_window=args.final_window)}  # fmt: skip
         gap = {c.game: c for c in atari_comparison(rows, phase1_episodes=p1, final_window=args.final_window,
                                                    condition=f"H1-{label}", baseline=baseline)}  # fmt: skip
         if same_scale:
