@@ -29,7 +29,6 @@ import json
 import time
 
 import torch
-import torch.nn.functional as F
 
 import torchrl_options.discovery.tabulated as tabulated
 from torchrl_options import DDOLoss, GaussianOptionsMLP, OptionsMLP, discover_options
