@@ -50,21 +50,21 @@ SETTINGS = {
         window=2,
         num_options=4,
         discovery=dict(action_space="continuous", meta_control="learned", num_cells=16, num_iterations=300, lr=0.01,
-                       m_steps=1, restarts=1, tol=None),
+                       m_steps=1, restarts=1, tol=None, init="random", termination_cells=16),
     ),
     "gridworld": dict(
         make=lambda n, seed: gridworld_subgoal_demonstrations(n, 200, seed=seed),
         window=1,
         num_options=8,
         discovery=dict(action_space="categorical", meta_control="uniform", num_cells=16, num_iterations=300, lr=0.01,
-                       m_steps=1, restarts=1, tol=None),
+                       m_steps=1, restarts=1, tol=None, init="random", termination_cells=16),
     ),
     "gridworld-four-rooms": dict(
         make=lambda n, seed: gridworld_subgoal_demonstrations(n, 200, grid="four-rooms", seed=seed),
         window=1,
         num_options=8,
         discovery=dict(action_space="categorical", meta_control="uniform", num_cells=16, num_iterations=300, lr=0.01,
-                       m_steps=1, restarts=1, tol=None),
+                       m_steps=1, restarts=1, tol=None, init="random", termination_cells=16),
     ),
 }
 DEFAULT = ["continuous", "gridworld"]

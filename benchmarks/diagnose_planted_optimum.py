@@ -31,7 +31,8 @@ import time
 import torch
 
 import torchrl_options.discovery.tabulated as tabulated
-from torchrl_options import DDOLoss, GaussianOptionsMLP, OptionsMLP, discover_options
+from torchrl_options import DDOLoss, discover_options
+from torchrl_options.discovery import clone_from_labels, default_options
 from torchrl_options.testing.planted_suite import PLANTED_SUITE, posterior_accuracy
 
 
@@ -42,40 +43,19 @@ def split(num_rows: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return perm[held:], perm[:held]
 
 
-def oracle_options(train, num_options: int, num_cells: int, action_space: str, steps: int = 1500):
+def oracle_options(train, num_options: int, num_cells: int, action_space: str, steps: int = 1500,
+                   termination_cells=None):
     """Options cloned from the true labels: each policy on its option's steps, each termination on the true switches.
 
-    The options are built as ``discover_options`` builds fresh ones (an :class:`OptionsMLP`, or a
-    :class:`GaussianOptionsMLP` started at the demonstrations' action spread) and trained by Adam on the
-    log-likelihood of the true option's action and of the true termination at ``s_{t+1}``, both read from
-    :meth:`DDOLoss.log_probabilities` (so the same inputs the E-step sees).
+    The options are the ones ``discover_options`` builds when none are given (:func:`default_options`), fitted by
+    :func:`clone_from_labels` (the pre-training of segment starts) on the true option of every step and the true
+    switches (``"true_switch"``: an option starts at the step), for ``steps`` Adam steps.
     """
-    obs_dim = train["observation"].shape[-1]
+    options = default_options(train, num_options, action_space=action_space, num_cells=num_cells,
+                              termination_cells=termination_cells)
     mask = train["collector", "mask"]
-    if action_space == "categorical":
-        num_actions = int(train["action"].max()) + 1
-        options = OptionsMLP(obs_dim, num_actions, num_options, num_cells=num_cells)
-    else:
-        spread = min(max(float(train["action"][mask].std(0).mean()), 1e-2), 1.0)
-        options = GaussianOptionsMLP(obs_dim, train["action"].shape[-1], num_options, num_cells=num_cells,
-                                     init_scale=spread, min_scale=min(1e-3, spread / 10))  # fmt: skip
-    loss = DDOLoss(options, action_space=action_space)
-    true_option = train["true_option"].clamp_min(0)[..., None]
-    switch_next = torch.zeros_like(mask)
-    switch_next[:, :-1] = train["true_switch"][:, 1:]
-    has_next = mask.clone()
-    has_next[:, :-1] &= mask[:, 1:]
-    has_next[:, -1] = False
-    optimizer = torch.optim.Adam(options.parameters(), lr=0.03)
-    for _ in range(steps):
-        p = loss.log_probabilities(train)
-        policy = -(p["log_pi"].gather(-1, true_option).squeeze(-1) * mask).sum() / mask.sum()
-        term = torch.where(switch_next, p["log_term"].gather(-1, true_option).squeeze(-1),
-                           p["log_cont"].gather(-1, true_option).squeeze(-1))  # fmt: skip
-        objective = policy - (term * has_next).sum() / has_next.sum()
-        optimizer.zero_grad()
-        objective.backward()
-        optimizer.step()
+    clone_from_labels(options, train, mask, train["true_option"].clamp_min(0), train["true_switch"],
+                      action_space=action_space, num_steps=steps)  # fmt: skip
     return options
 
 
@@ -119,7 +99,8 @@ def main() -> None:
         if args.mode == "oracle":
             torch.manual_seed(seed)
             kwargs["options"] = oracle_options(data[train_rows], problem.num_options, kwargs.pop("num_cells", 8),
-                                               problem.action_space)  # fmt: skip
+                                               problem.action_space,
+                                               termination_cells=kwargs.pop("termination_cells", None))  # fmt: skip
             kwargs["restarts"] = 1
         start = time.process_time()
         result = discover_options(data[train_rows], problem.num_options, **kwargs)

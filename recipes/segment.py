@@ -89,7 +89,9 @@ def run(cfg: DictConfig) -> dict:
         num_options = 8 if cfg.data.source == "gridworld" else 4
     result = discover_options(
         data, num_options, action_space=action_space, meta_control=d.meta_control, init=d.init,
-        num_cells=list(d.num_cells), num_iterations=d.num_iterations, lr=d.lr, batch_size=d.batch_size, m_steps=d.m_steps, restarts=d.restarts,
+        num_cells=list(d.num_cells),
+        termination_cells=list(d.termination_cells) if d.get("termination_cells") is not None else None,
+        num_iterations=d.num_iterations, lr=d.lr, batch_size=d.batch_size, m_steps=d.m_steps, restarts=d.restarts,
         tol=d.tol, seed=d.seed,
         progress=cfg.progress, return_info=True, desc=f"DDO: {num_options} options, {d.meta_control} meta-control",
     )

@@ -18,7 +18,9 @@ from torchrl_options import (
 )
 from torchrl_options.discovery import (
     change_points,
+    clone_from_labels,
     converged_at,
+    default_options,
     fit_ddo,
     kmeans,
     pretrain_on_clusters,
@@ -26,7 +28,9 @@ from torchrl_options.discovery import (
     TabulatedDDO,
     unique_rows,
 )
+from torchrl_options import GaussianOptionsMLP
 from torchrl_options.testing import label_accuracy, planted_corridor_demonstrations
+from torchrl_options.testing.planted_suite import planted_gaussian_demonstrations
 
 
 def _posterior(options, data, meta=None):
@@ -537,3 +541,106 @@ def test_restarts_keep_the_best_start_and_continue_training_it(monkeypatch):
     assert continuation_records[0]["log_likelihood_per_step"] > first_records[-1]["log_likelihood_per_step"] - 1e-3
     assert ll > first_records[-1]["log_likelihood_per_step"] + 1e-3
     assert ll == pytest.approx(continuation_records[-1]["log_likelihood_per_step"], abs=0.02)
+
+
+def _complete_data_objective(loss, data, labels, starts):
+    """The negative complete-data log-likelihood along ``labels``, read from DDOLoss (policy and termination terms)."""
+    mask = data["collector", "mask"]
+    p = loss.log_probabilities(data)
+    switch_next = torch.zeros_like(mask)
+    switch_next[:, :-1] = starts[:, 1:]
+    has_next = mask.clone()
+    has_next[:, :-1] &= mask[:, 1:]
+    has_next[:, -1] = False
+    own = labels[..., None]
+    policy = (p["log_pi"].gather(-1, own).squeeze(-1) * mask).sum() / mask.sum()
+    term = torch.where(switch_next, p["log_term"].gather(-1, own).squeeze(-1), p["log_cont"].gather(-1, own).squeeze(-1))
+    return -(policy + (term * has_next).sum() / has_next.sum())
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_clone_from_labels_minimises_the_complete_data_likelihood(continuous):
+    """clone_from_labels takes the Adam steps of the complete-data NLL that DDOLoss's probabilities give."""
+    if continuous:
+        data, _ = planted_gaussian_demonstrations(6, (8, 15), seed=0)
+    else:
+        data = planted_corridor_demonstrations(6, 15, seed=0)
+    space = "continuous" if continuous else "categorical"
+    mask = data["collector", "mask"]
+    labels, starts = data["true_option"].clamp_min(0), data["true_switch"]
+    torch.manual_seed(0)
+    cloned = default_options(data, 2 if not continuous else 3, action_space=space)
+    manual = type(cloned)(**{k: v for k, v in cloned.config.items() if k not in ("in_keys", "out_keys")})
+    manual.load_state_dict(cloned.state_dict())
+    clone_from_labels(cloned, data, mask, labels, starts, action_space=space, num_steps=5)
+    loss = DDOLoss(manual, action_space=space)
+    opt = torch.optim.Adam(manual.parameters(), lr=0.03)
+    for _ in range(5):
+        objective = _complete_data_objective(loss, data, labels, starts)
+        opt.zero_grad()
+        objective.backward()
+        opt.step()
+    for a, b in zip(cloned.parameters(), manual.parameters()):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    # and the steps went down the objective
+    fresh = _complete_data_objective(DDOLoss(cloned, action_space=space), data, labels, starts)
+    assert torch.isfinite(fresh)
+
+
+def test_clone_from_true_labels_recovers_the_planted_options():
+    """Cloned from the true labels and switches, the options' posterior labels the steps as the truth does."""
+    data = planted_corridor_demonstrations(32, 100, seed=0)
+    mask = data["collector", "mask"]
+    torch.manual_seed(0)
+    options = default_options(data, 2)
+    clone_from_labels(options, data, mask, data["true_option"].clamp_min(0), data["true_switch"], num_steps=300)
+    fb, _ = _posterior(options, data)
+    assert label_accuracy(most_likely_options(fb.u)[mask], data["true_option"][mask]) > 0.9
+
+
+def test_clone_from_labels_bad_arguments():
+    data = planted_corridor_demonstrations(4, 20, seed=0)
+    mask = data["collector", "mask"]
+    options = OptionsMLP(data["observation"].shape[-1], 2, 2)
+    labels, starts = data["true_option"].clamp_min(0), data["true_switch"]
+    with pytest.raises(ValueError, match="labels"):
+        clone_from_labels(options, data, mask, labels[:, :-1], starts)
+    with pytest.raises(ValueError, match="starts"):
+        clone_from_labels(options, data, mask, labels, starts[:2])
+    with pytest.raises(TypeError, match="labels"):
+        clone_from_labels(options, data, mask, labels.float(), starts)
+    with pytest.raises(ValueError, match="labels must lie in"):
+        clone_from_labels(options, data, mask, labels + 2, starts)
+    for name, value in (("num_steps", 0), ("lr", 0.0), ("lr", float("nan"))):
+        with pytest.raises(ValueError, match=name):
+            clone_from_labels(options, data, mask, labels, starts, **{name: value})
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_default_options_are_the_ones_discover_options_starts_from(continuous):
+    """default_options draws the modules discover_options trains when given none (same seed, same weights)."""
+    if continuous:
+        data, _ = planted_gaussian_demonstrations(6, (8, 15), seed=0)
+    else:
+        data = planted_corridor_demonstrations(6, 15, seed=0)
+    space = "continuous" if continuous else "categorical"
+    torch.manual_seed(3)
+    built = default_options(data, 3, action_space=space, num_cells=5)
+    fitted = discover_options(data, 3, action_space=space, num_cells=5, num_iterations=0, init="random", seed=3,
+                              progress=False)  # fmt: skip
+    assert type(built) is type(fitted)
+    for a, b in zip(built.parameters(), fitted.parameters()):
+        torch.testing.assert_close(a, b)
+    if continuous:
+        assert isinstance(built, GaussianOptionsMLP)
+        mask = data["collector", "mask"]
+        spread = float(data["action"][mask].std(0).mean())
+        scale = built(data.select("observation").clone())["option_scale"]
+        torch.testing.assert_close(scale, torch.full_like(scale, spread), atol=1e-5, rtol=1e-4)
+    else:
+        assert built.config["num_actions"] == int(data["action"].max()) + 1
+    with pytest.raises(ValueError, match="action_space"):
+        default_options(data, 3, action_space="discrete")
+    deep = discover_options(data, 3, action_space=space, num_cells=5, termination_cells=[4, 4], num_iterations=2,
+                            init="random", seed=3, progress=False)  # fmt: skip
+    assert deep.config["termination_cells"] == [4, 4] and deep.config["num_cells"] == [5]

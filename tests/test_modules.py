@@ -72,11 +72,48 @@ def test_meta_control_modules():
         (dict(in_features=2, num_actions=2, num_options=0), "positive"),
         (dict(in_features=2, num_actions=2, num_options=2, architecture="wide"), "architecture"),
         (dict(in_features=2, num_actions=2, num_options=2, activation="sine"), "activation"),
+        (dict(in_features=2, num_actions=2, num_options=2, num_cells=0), "num_cells"),
+        (dict(in_features=2, num_actions=2, num_options=2, num_cells=[4, -1]), "num_cells"),
+        (dict(in_features=2, num_actions=2, num_options=2, num_cells=[]), "num_cells"),
+        (dict(in_features=2, num_actions=2, num_options=2, termination_cells=[0]), "termination_cells"),
+        (dict(in_features=2, num_actions=2, num_options=2, termination_cells=4, architecture="shared"),
+         "termination_cells needs architecture='separate'"),
     ],
 )
 def test_options_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         OptionsMLP(**kwargs)
+
+
+@pytest.mark.parametrize("cells", ["8", 2.5, True, None])
+def test_hidden_sizes_of_the_wrong_type_are_named(cells):
+    for build in (lambda c: OptionsMLP(2, 2, 2, num_cells=c), lambda c: GaussianOptionsMLP(2, 2, 2, num_cells=c),
+                  lambda c: MetaControlMLP(2, 2, num_cells=c)):  # fmt: skip
+        with pytest.raises(TypeError, match="num_cells must be an int or a sequence of ints"):
+            build(cells)
+    with pytest.raises(TypeError, match="termination_cells"):
+        GaussianOptionsMLP(2, 2, 2, termination_cells="8" if cells is None else cells)
+
+
+@pytest.mark.parametrize("cls", [OptionsMLP, GaussianOptionsMLP])
+def test_termination_cells_shape_only_the_termination_networks(cls):
+    """termination_cells gives the termination networks their own hidden sizes; by default they follow num_cells."""
+    torch.manual_seed(0)
+    plain = cls(3, 2, 4, num_cells=5)
+    torch.manual_seed(0)
+    same = cls(3, 2, 4, num_cells=5, termination_cells=None)
+    for a, b in zip(plain.parameters(), same.parameters()):
+        torch.testing.assert_close(a, b)
+    deep = cls(3, 2, 4, num_cells=5, termination_cells=[6, 7])
+    assert deep.config["termination_cells"] == [6, 7] and plain.config["termination_cells"] == [5]
+    sizes = [p.shape for p in deep.termination.parameters()]
+    assert sizes == [torch.Size([4, 6, 3]), torch.Size([4, 6]), torch.Size([4, 7, 6]), torch.Size([4, 7]),
+                     torch.Size([4, 1, 7]), torch.Size([4, 1])], sizes  # fmt: skip
+    assert [p.shape for p in deep.control.parameters()] == [p.shape for p in plain.control.parameters()]
+    td = deep(TensorDict({"observation": torch.randn(9, 3)}, [9]))
+    assert td["termination_logits"].shape == (9, 4)
+    rebuilt = cls(**{k: v for k, v in deep.config.items() if k not in ("in_keys", "out_keys")})
+    rebuilt.load_state_dict(deep.state_dict())  # the configuration rebuilds the module
 
 
 def test_hand_written_options_are_first_class():

@@ -3,6 +3,7 @@ from torchrl_options.discovery.discover import (
     as_trajectory_batch,
     AUTO_RESTARTS,
     converged_at,
+    default_options,
     discover_options,
     DEFAULT_RESTARTS,
     INITS,
@@ -11,7 +12,13 @@ from torchrl_options.discovery.discover import (
     PAPER_SETTINGS,
 )
 from torchrl_options.discovery.diagnostics import option_diagnostics, OptionDiagnostics, restart_disagreement
-from torchrl_options.discovery.initialization import change_points, kmeans, pretrain_on_clusters, pretrain_on_segments
+from torchrl_options.discovery.initialization import (
+    change_points,
+    clone_from_labels,
+    kmeans,
+    pretrain_on_clusters,
+    pretrain_on_segments,
+)
 from torchrl_options.discovery.serialization import load_options, save_options
 from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
 
@@ -19,7 +26,9 @@ __all__ = [
     "as_trajectory_batch",
     "AUTO_RESTARTS",
     "change_points",
+    "clone_from_labels",
     "converged_at",
+    "default_options",
     "DEFAULT_RESTARTS",
     "INITS",
     "discover_options",

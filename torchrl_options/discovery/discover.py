@@ -19,6 +19,7 @@ from torchrl_options.discovery.split_merge import check_split_merge_options, spl
 from torchrl_options.discovery.tabulated import TabulatedDDO
 from torchrl_options.discovery.width import AUTO_WIDTHS, held_out_log_likelihood, select_width
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OptionsMLP
+from torchrl_options.modules._features import hidden_sizes
 from torchrl_options.objectives import DDOLoss
 
 __all__ = [
@@ -46,7 +47,8 @@ AUTO_RESTARTS = 6
 clustered by where the segments end and one clustered by their actions."""
 
 PAPER_SETTINGS: dict = dict(
-    num_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None, init="random"
+    num_cells=2, termination_cells=2, activation="tanh", num_iterations=500, m_steps=1, lr=1e-2, restarts=1, tol=None,
+    init="random",
 )
 """The settings of the paper's four-rooms experiment (one hidden layer of 2 tanh units, plain Expectation-Gradient,
 one start), as ``discover_options`` keyword arguments: ``discover_options(data, K, **PAPER_SETTINGS)``. The
@@ -411,6 +413,71 @@ def _infer_in_features(td: TensorDictBase, obs_keys: Sequence[NestedKey]) -> int
     return total
 
 
+def default_options(
+    data: TensorDictBase,
+    num_options: int,
+    *,
+    action_space: str = "categorical",
+    num_actions: int | None = None,
+    obs_keys: NestedKey | Sequence[NestedKey] = "observation",
+    action_key: NestedKey = "action",
+    num_cells: int | Sequence[int] = 8,
+    termination_cells: int | Sequence[int] | None = None,
+    activation: str = "tanh",
+    architecture: str = "separate",
+) -> TensorDictModuleBase:
+    """The fresh options :func:`discover_options` trains when none are given (weights from the global RNG).
+
+    Discrete actions get an :class:`OptionsMLP`; continuous ones a :class:`GaussianOptionsMLP` whose options all
+    start at the demonstrations' own action spread (the mean per-dimension standard deviation of the valid
+    actions, clipped to ``[0.01, 1]``): a start at 1.0 can dwarf the spread and leave every option alike, a
+    symmetric start the likelihood cannot leave. Unless ``termination_cells`` is given, a Gaussian option's
+    termination network has two hidden layers of four times the widest of ``num_cells``: one layer of tanh units
+    draws half-planes, and a termination that fires within a region of a continuous state space (the planted
+    suite's Gaussian options stop near their goal) is their intersection, which a second layer forms and one layer
+    approaches only slowly (measured in ``docs/experiments/planted_suite.md``).
+
+    Args:
+        data (TensorDictBase): ``[B, T]`` trajectories with the ``("collector", "mask")`` of valid steps.
+        num_options (int): K.
+
+    Keyword Args:
+        action_space (str): ``"categorical"`` (default) or ``"continuous"``.
+        num_actions (int, optional): A, for discrete actions. Defaults to ``max(action) + 1`` over valid steps.
+        obs_keys, action_key, num_cells, termination_cells, activation, architecture: as in
+            :func:`discover_options`.
+
+    Examples:
+        >>> from torchrl_options.testing import planted_corridor_demonstrations
+        >>> data = planted_corridor_demonstrations(num_trajectories=4, length=10, seed=0)
+        >>> type(default_options(data, 2)).__name__
+        'OptionsMLP'
+    """
+    if action_space not in ("categorical", "continuous"):
+        raise ValueError(f"action_space must be 'categorical' or 'continuous', got {action_space!r}.")
+    obs_keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
+    mask = data.get(_MASK) if _MASK in data.keys(include_nested=True) else torch.ones(data.batch_size, dtype=torch.bool)
+    in_features = _infer_in_features(data, obs_keys)
+    if action_space == "categorical":
+        if num_actions is None:
+            num_actions = int(data.get(action_key)[mask].max()) + 1
+        return OptionsMLP(
+            in_features, num_actions, num_options, num_cells=num_cells, termination_cells=termination_cells,
+            activation=activation, architecture=architecture, in_keys=obs_keys,
+        )
+    if termination_cells is None:
+        width = 4 * max(hidden_sizes(num_cells))
+        termination_cells = [width, width]
+    actions = data.get(action_key)[mask]
+    action_dim = actions.shape[-1]
+    spread = float(actions.float().std(0).mean()) if actions.shape[0] > 1 else 1.0
+    init_scale = min(max(spread, 1e-2), 1.0) if spread == spread else 1.0
+    return GaussianOptionsMLP(
+        in_features, action_dim, num_options, num_cells=num_cells, termination_cells=termination_cells,
+        activation=activation, in_keys=obs_keys, init_scale=init_scale, min_scale=min(1e-3, init_scale / 10),
+    )
+
+
 @restores_global_rng
 def discover_options(
     trajectories: TensorDictBase | Sequence[TensorDictBase] | ReplayBuffer,
@@ -423,6 +490,7 @@ def discover_options(
     obs_keys: NestedKey | Sequence[NestedKey] = "observation",
     action_key: NestedKey = "action",
     num_cells: int | Sequence[int] = 8,
+    termination_cells: int | Sequence[int] | None = None,
     activation: str = "tanh",
     architecture: str = "separate",
     init: str = "auto",
@@ -498,6 +566,9 @@ def discover_options(
             suite. The result's ``num_cells`` and ``width_log_likelihoods`` say what was chosen and why, and its
             ``history`` holds the chosen width's iterations on the training share followed by those on all the
             trajectories.
+        termination_cells (int or sequence of int, optional): hidden sizes of the default modules' termination
+            networks. Defaults to ``num_cells`` for discrete actions and, for continuous ones, to two layers of four
+            times the widest of ``num_cells`` (``[32, 32]`` with the default width; see :func:`default_options`).
         init (str): how each start's options are drawn before DDO: ``"random"``, ``"kmeans"`` (pre-clustering of
             state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
             the segments clustered by where they end, each option cloned from a cluster:
@@ -636,7 +707,8 @@ def discover_options(
             )
         common = dict(
             meta_control=meta_control, num_actions=num_actions, action_space=action_space, obs_keys=obs_keys,
-            action_key=action_key, activation=activation, architecture=architecture, num_iterations=num_iterations,
+            action_key=action_key, termination_cells=termination_cells, activation=activation,
+            architecture=architecture, num_iterations=num_iterations,
             m_steps=m_steps, tol=tol, patience=patience, batch_size=batch_size, optimizer=optimizer, lr=lr,
             lr_scheduler=lr_scheduler, device=device, seed=seed, progress=progress, log_every=log_every,
             return_info=True,
@@ -668,23 +740,11 @@ def discover_options(
         """Fresh modules (drawn from the global RNG), optionally pre-clustered, with their optimizer."""
         options = user_options
         if options is None:
-            in_features = _infer_in_features(data, obs_keys)
-            if action_space == "categorical":
-                options = OptionsMLP(
-                    in_features, num_actions, num_options, num_cells=num_cells, activation=activation,
-                    architecture=architecture, in_keys=obs_keys,
-                )
-            else:
-                actions = data.get(action_key)[mask]
-                action_dim = actions.shape[-1]
-                # start every option at the demonstrations' own action spread (not 1.0, which can dwarf it and
-                # leave all options alike): a symmetric start the likelihood cannot leave is a local optimum
-                spread = float(actions.float().std(0).mean()) if actions.shape[0] > 1 else 1.0
-                init_scale = min(max(spread, 1e-2), 1.0) if spread == spread else 1.0
-                options = GaussianOptionsMLP(
-                    in_features, action_dim, num_options, num_cells=num_cells, activation=activation,
-                    in_keys=obs_keys, init_scale=init_scale, min_scale=min(1e-3, init_scale / 10),
-                )
+            options = default_options(
+                data, num_options, action_space=action_space, num_actions=num_actions, obs_keys=obs_keys,
+                action_key=action_key, num_cells=num_cells, termination_cells=termination_cells, activation=activation,
+                architecture=architecture,
+            )
         options = options.to(device)
         if meta_control == "uniform":
             meta_module = None

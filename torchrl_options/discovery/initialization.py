@@ -19,7 +19,7 @@ from tensordict.utils import NestedKey
 from torchrl_options.discovery._validation import check_int
 from torchrl_options.objectives.ddo import option_log_probs
 
-__all__ = ["change_points", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
+__all__ = ["change_points", "clone_from_labels", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
 
 logger = logging.getLogger(__name__)
 
@@ -344,9 +344,90 @@ def pretrain_on_segments(
     logger.info("segment pre-clustering: %d segments, clusters of %s segments", num_segments, counts)
     labels = torch.zeros(B, T, dtype=torch.long, device=mask.device)
     labels[mask] = seg_labels[inverse]
-    # a step is its segment's last (terminate after it) when the next valid step starts a segment or none follows
+    clone_from_labels(
+        options, trajectories, mask, labels, cuts, action_key=action_key, action_space=action_space,
+        meta_control=meta_control, termination_key=termination_key, num_steps=num_steps, lr=lr,
+    )
+    return labels
+
+
+def clone_from_labels(
+    options: TensorDictModuleBase,
+    trajectories: TensorDictBase,
+    mask: torch.Tensor,
+    labels: torch.Tensor,
+    starts: torch.Tensor,
+    *,
+    action_key: NestedKey = "action",
+    action_space: str = "auto",
+    meta_control: TensorDictModuleBase | None = None,
+    termination_key: NestedKey = "termination_logits",
+    num_steps: int = 500,
+    lr: float = 3e-2,
+) -> None:
+    """Clones options from a labelling of the demonstrations' steps: policies, terminations and meta-control.
+
+    Option ``h``'s control policy is fitted by behaviour cloning on the steps labelled ``h``; its termination by
+    logistic regression at ``s_{t+1}`` (terminate after a step labelled ``h`` when the next step starts an option,
+    continue otherwise; the last valid step of a trajectory is no target, since the data's end is not a
+    termination); ``meta_control``, if given, to predict the label of each step that starts an option. The two
+    terms are averaged over their own steps and summed, and ``num_steps`` Adam steps minimise them: the
+    complete-data negative log-likelihood of DDO's model (Fox et al., 2017) along the given labels. Used by
+    :func:`pretrain_on_segments` (labels from clustered segments) and by diagnoses that start from the truth.
+
+    Args:
+        options (TensorDictModuleBase): the options to fit (modified in place).
+        trajectories (TensorDictBase): ``[B, T]`` trajectories with ``("next", obs)`` entries.
+        mask (Tensor): ``[B, T]`` bool, the valid steps.
+        labels (Tensor): ``[B, T]`` integer option of every step (read on valid steps only).
+        starts (Tensor): ``[B, T]`` bool, the steps where an option starts (the same option redrawn included).
+
+    Keyword Args:
+        action_key (NestedKey): the action entry.
+        action_space (str): ``"auto"``, ``"categorical"`` or ``"continuous"``.
+        meta_control (TensorDictModuleBase, optional): a learned meta-control to fit as well.
+        termination_key (NestedKey): where the options write their termination logits.
+        num_steps (int): Adam steps. Defaults to 500.
+        lr (float): the learning rate. Defaults to 0.03.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_options import OptionsMLP
+        >>> from torchrl_options.testing import planted_corridor_demonstrations
+        >>> data = planted_corridor_demonstrations(num_trajectories=8, length=30, seed=0)
+        >>> mask = data["collector", "mask"]
+        >>> starts = torch.zeros_like(mask)
+        >>> starts[:, 0] = True
+        >>> options = OptionsMLP(data["observation"].shape[-1], 2, 2)
+        >>> clone_from_labels(options, data, mask, data["true_option"].clamp_min(0), starts, num_steps=20)
+    """
+    check_int(num_steps, "num_steps", minimum=1)
+    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0.0 < lr < float("inf"):
+        raise ValueError(f"lr must be a positive finite number, got {lr!r}.")
+    mask = mask.bool()
+    for name, value in (("labels", labels), ("starts", starts)):
+        if not isinstance(value, torch.Tensor) or value.shape != mask.shape:
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(f"{name} must be a tensor of the mask's shape {tuple(mask.shape)}, got {got}.")
+    if labels.is_floating_point() or labels.dtype == torch.bool:
+        raise TypeError(f"labels must be an integer tensor, got {labels.dtype}.")
+    num_options = getattr(options, "num_options", None)
+    valid_labels = labels[mask]
+    if valid_labels.numel() and (
+        int(valid_labels.min()) < 0 or (num_options is not None and int(valid_labels.max()) >= num_options)
+    ):
+        raise ValueError(
+            f"labels must lie in [0, {num_options}) on valid steps, got {int(valid_labels.min())} to "
+            f"{int(valid_labels.max())}."
+        )
+    starts = starts.bool()
+    labels = torch.where(mask, labels, torch.zeros_like(labels)).long()
+    flat = trajectories[mask]
+    flat_next = flat.get("next")
+    next_obs = torch.cat([flat_next.get(k).flatten(1).float() for k in options.in_keys], -1)
+    # a step is its option's last (terminate after it) when the next step starts an option
     ends_here = torch.zeros_like(mask)
-    ends_here[:, :-1] = cuts[:, 1:] | ~mask[:, 1:]
+    ends_here[:, :-1] = starts[:, 1:] | ~mask[:, 1:]
     ends_here[:, -1] = True
     ends_here &= mask
     # the last valid step of a trajectory may be cut by the data's end, not by a termination: not a target
@@ -368,7 +449,7 @@ def pretrain_on_segments(
     in_next = flat_next[next_rows].select(*options.in_keys)
     action_now, label_now, label_next = flat_action[now_rows], flat_labels[now_rows], flat_labels[next_rows]
     target_next = ends_here[mask][next_rows].to(now_obs.dtype)
-    start_rows = cuts[mask]
+    start_rows = starts[mask]
     params = list(options.parameters()) + (list(meta_control.parameters()) if meta_control is not None else [])
     opt = torch.optim.Adam(params, lr=lr)
     for _ in range(num_steps):
@@ -386,4 +467,3 @@ def pretrain_on_segments(
         opt.zero_grad()
         loss.backward()
         opt.step()
-    return labels

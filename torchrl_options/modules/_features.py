@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from numbers import Integral
 
 import torch
 from tensordict import TensorDictBase
@@ -41,10 +42,14 @@ def key_to_config(key: NestedKey) -> str | list[str]:
     return list(key) if isinstance(key, tuple) else key
 
 
-def hidden_sizes(num_cells: int | Sequence[int]) -> list[int]:
-    if isinstance(num_cells, int):
-        return [num_cells]
-    return [int(c) for c in num_cells]
+def hidden_sizes(num_cells: int | Sequence[int], name: str = "num_cells") -> list[int]:
+    """Hidden layer sizes as a list of positive ints; ``name`` is the argument named in the error."""
+    cells = [num_cells] if isinstance(num_cells, Integral) and not isinstance(num_cells, bool) else num_cells
+    if isinstance(cells, (str, bytes)) or not isinstance(cells, Sequence):
+        raise TypeError(f"{name} must be an int or a sequence of ints, got {num_cells!r}.")
+    if not cells or any(isinstance(c, bool) or not isinstance(c, Integral) or c < 1 for c in cells):
+        raise ValueError(f"{name} must be one positive int or a non-empty sequence of them, got {num_cells!r}.")
+    return [int(c) for c in cells]
 
 
 class ObservationModule(TensorDictModuleBase):

@@ -176,8 +176,6 @@ class OneHotByteOptions(ObservationModule):
         if isinstance(value_scale, bool) or not isinstance(value_scale, (int, float)) or not 0 < value_scale < math.inf:
             raise ValueError(f"value_scale must be a number > 0 (1.0 for raw bytes, 1/255 for bytes/255), got {value_scale!r}.")
         cells = hidden_sizes(num_cells)
-        if not cells or any(c < 1 for c in cells):
-            raise ValueError(f"num_cells must be a positive int or a non-empty list of them, got {num_cells!r}.")
         if out_keys is None:
             out_keys = ["option_logits", "termination_logits"]
         out_keys = as_key_list(out_keys, "out_keys")

@@ -99,6 +99,9 @@ class OptionsMLP(ObservationModule):
 
     Keyword Args:
         num_cells (int or sequence of int): hidden layer sizes. Defaults to ``2`` (one layer of 2 units).
+        termination_cells (int or sequence of int, optional): hidden layer sizes of the termination networks, when
+            they should differ from the control networks' (``architecture="separate"`` only). Defaults to
+            ``num_cells``.
         activation (str): ``"tanh"`` (default), ``"relu"``, ``"elu"``, ...
         architecture (str): ``"separate"`` (default) or ``"shared"``.
         in_keys (NestedKey or list): observation keys, concatenated. Defaults to ``"observation"``.
@@ -122,6 +125,7 @@ class OptionsMLP(ObservationModule):
         num_options: int,
         *,
         num_cells: int | Sequence[int] = 2,
+        termination_cells: int | Sequence[int] | None = None,
         activation: str = "tanh",
         architecture: str = "separate",
         in_keys: NestedKey | Sequence[NestedKey] = "observation",
@@ -143,6 +147,12 @@ class OptionsMLP(ObservationModule):
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
         cells = hidden_sizes(num_cells)
+        if termination_cells is not None and architecture != "separate":
+            raise ValueError(
+                f"termination_cells needs architecture='separate' (the shared trunk feeds every head), got "
+                f"architecture={architecture!r}."
+            )
+        term_cells = cells if termination_cells is None else hidden_sizes(termination_cells, "termination_cells")
         self.num_options, self.num_actions = num_options, num_actions
         self.architecture = architecture
         self.config = dict(
@@ -150,6 +160,7 @@ class OptionsMLP(ObservationModule):
             num_actions=num_actions,
             num_options=num_options,
             num_cells=cells,
+            termination_cells=term_cells if architecture == "separate" else None,
             activation=activation,
             architecture=architecture,
             in_keys=[key_to_config(k) for k in self.in_keys],
@@ -157,7 +168,7 @@ class OptionsMLP(ObservationModule):
         )
         if architecture == "separate":
             self.control = _ensemble(in_features, num_actions, num_options, cells, activation)
-            self.termination = _ensemble(in_features, 1, num_options, cells, activation)
+            self.termination = _ensemble(in_features, 1, num_options, term_cells, activation)
         else:
             act = activation_class(activation)
             self.trunk = MLP(
@@ -197,6 +208,8 @@ class GaussianOptionsMLP(ObservationModule):
 
     Keyword Args:
         num_cells (int or sequence of int): hidden sizes. Defaults to ``[64, 64]``.
+        termination_cells (int or sequence of int, optional): hidden sizes of the termination networks, when they
+            should differ from the mean networks'. Defaults to ``num_cells``.
         activation (str): defaults to ``"tanh"``.
         init_scale (float): initial standard deviation. Defaults to ``1.0``.
         min_scale (float): lower bound of the standard deviation, keeping the likelihood bounded (a Gaussian
@@ -222,6 +235,7 @@ class GaussianOptionsMLP(ObservationModule):
         num_options: int,
         *,
         num_cells: int | Sequence[int] = (64, 64),
+        termination_cells: int | Sequence[int] | None = None,
         activation: str = "tanh",
         init_scale: float = 1.0,
         min_scale: float = 1e-3,
@@ -245,6 +259,7 @@ class GaussianOptionsMLP(ObservationModule):
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
         cells = hidden_sizes(num_cells)
+        term_cells = cells if termination_cells is None else hidden_sizes(termination_cells, "termination_cells")
         self.num_options, self.action_dim = num_options, action_dim
         self.min_scale = min_scale
         self.state_dependent_scale = state_dependent_scale
@@ -253,6 +268,7 @@ class GaussianOptionsMLP(ObservationModule):
             action_dim=action_dim,
             num_options=num_options,
             num_cells=cells,
+            termination_cells=term_cells,
             activation=activation,
             init_scale=init_scale,
             min_scale=min_scale,
@@ -262,7 +278,7 @@ class GaussianOptionsMLP(ObservationModule):
         )
         out = 2 * action_dim if state_dependent_scale else action_dim
         self.control = _ensemble(in_features, out, num_options, cells, activation)
-        self.termination = _ensemble(in_features, 1, num_options, cells, activation)
+        self.termination = _ensemble(in_features, 1, num_options, term_cells, activation)
         # softplus(raw) + min_scale == init_scale at initialisation
         raw = torch.log(torch.expm1(torch.tensor(init_scale - min_scale)))
         self.raw_scale = nn.Parameter(torch.full((num_options, action_dim), float(raw)))
