@@ -10,6 +10,9 @@ Usage (the runs kept in ``results/segmentation/start_scale.txt``)::
 
     OMP_NUM_THREADS=1 python benchmarks/diagnose_segmentation_start_scale.py spread
     OMP_NUM_THREADS=1 python benchmarks/diagnose_segmentation_start_scale.py scale1
+
+``--defaults`` runs ``discover_options`` with its defaults (only ``action_space="continuous"`` set) instead of the
+benchmark's settings.
 """
 from __future__ import annotations
 
@@ -28,6 +31,8 @@ def main() -> None:
     mode = sys.argv[1] if len(sys.argv) > 1 else "spread"
     if mode not in ("spread", "scale1"):
         raise SystemExit(f"mode must be 'spread' or 'scale1', got {mode!r}")
+    if "--defaults" in sys.argv[2:]:  # discover_options' defaults instead of the benchmark's settings
+        bench_segmentation.SETTINGS["continuous"]["discovery"] = dict(action_space="continuous")
     built = discover.default_options
 
     def default_options(data, num_options, **kwargs):
@@ -43,7 +48,7 @@ def main() -> None:
     discover.default_options = default_options  # discover_options looks it up at call time
     for seed in range(1, 6):
         r = bench_segmentation.run_one("continuous", seed, 32, None)
-        print(mode, seed, round(r["accuracy"], 3), round(r["log_likelihood"], 4), flush=True)
+        print(mode, seed, round(r["accuracy"], 3), round(r["log_likelihood"], 4), round(r["seconds"], 1), flush=True)
 
 
 if __name__ == "__main__":
