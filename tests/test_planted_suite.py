@@ -116,7 +116,7 @@ def test_defaults_reach_the_truths_likelihood_on_a_small_gaussian_member():
     ceiling, truth_ll = problem.ceiling(data, truth)
     result = discover_options(data, problem.num_options, action_space="continuous", seed=0, progress=False,
                               return_info=True)  # fmt: skip
-    assert result.options.config["termination_cells"] == [32, 32]
+    assert result.options.config["termination_cells"] == [16, 16]
     with torch.no_grad():
         lp = DDOLoss(result.options, action_space="continuous").log_probabilities(data)
     acc, ll = posterior_accuracy(lp, data["true_option"])
@@ -179,10 +179,10 @@ def test_kept_suite_figures_are_quoted():
             assert sum(r["problem"] == problem for r in rows) == 10, (name, problem)
             row = suite_table_row(problem, rows)
             assert row in page, f"{name}: {row}"
-    # gaussian-3 with one-layer, 16-unit and 32-unit (the defaults) two-layer termination networks
+    # gaussian-3 with one-layer, 16-unit (the defaults) and 32-unit two-layer termination networks
     for name, label in (("gaussian3_one_layer", "one layer of 8 (the previous defaults)"),
-                        ("gaussian3_termination16", "two layers of 16"),
-                        ("defaults", "**two layers of 32 (the defaults)**")):  # fmt: skip
+                        ("defaults", "**two layers of 16 (the defaults)**"),
+                        ("gaussian3_termination32", "two layers of 32")):  # fmt: skip
         rows = [r for r in _suite_rows(name) if r["problem"] == "gaussian-3"]
         assert sorted(r["seed"] for r in rows) == list(range(10)), name
         row = f"| {label} " + suite_table_row("gaussian-3", rows).split("| gaussian-3 ", 1)[1]

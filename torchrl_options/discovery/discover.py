@@ -432,7 +432,7 @@ def default_options(
     start at the demonstrations' own action spread (the mean per-dimension standard deviation of the valid
     actions, clipped to ``[0.01, 1]``): a start at 1.0 can dwarf the spread and leave every option alike, a
     symmetric start the likelihood cannot leave. Unless ``termination_cells`` is given, a Gaussian option's
-    termination network has two hidden layers of four times the widest of ``num_cells``: one layer of tanh units
+    termination network has two hidden layers of twice the widest of ``num_cells``: one layer of tanh units
     draws half-planes, and a termination that fires within a region of a continuous state space (the planted
     suite's Gaussian options stop near their goal) is their intersection, which a second layer forms and one layer
     approaches only slowly (measured in ``docs/experiments/planted_suite.md``).
@@ -466,7 +466,7 @@ def default_options(
             activation=activation, architecture=architecture, in_keys=obs_keys,
         )
     if termination_cells is None:
-        width = 4 * max(hidden_sizes(num_cells))
+        width = 2 * max(hidden_sizes(num_cells))
         termination_cells = [width, width]
     actions = data.get(action_key)[mask]
     action_dim = actions.shape[-1]
@@ -567,8 +567,8 @@ def discover_options(
             ``history`` holds the chosen width's iterations on the training share followed by those on all the
             trajectories.
         termination_cells (int or sequence of int, optional): hidden sizes of the default modules' termination
-            networks. Defaults to ``num_cells`` for discrete actions and, for continuous ones, to two layers of four
-            times the widest of ``num_cells`` (``[32, 32]`` with the default width; see :func:`default_options`).
+            networks. Defaults to ``num_cells`` for discrete actions and, for continuous ones, to two layers of twice
+            the widest of ``num_cells`` (``[16, 16]`` with the default width; see :func:`default_options`).
         init (str): how each start's options are drawn before DDO: ``"random"``, ``"kmeans"`` (pre-clustering of
             state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
             the segments clustered by where they end, each option cloned from a cluster:
