@@ -61,10 +61,12 @@ def test_discover_options_reports_and_warns_about_duplicated_options(caplog):
     from torchrl_options import OptionsMLP
 
     data = planted_corridor_demonstrations(8, 30, seed=0)
+    torch.manual_seed(0)  # not the global RNG state earlier tests leave: an unseeded third option may act alike too
     options = OptionsMLP(2, 2, 3, num_cells=4)
     with torch.no_grad():
         for p in options.parameters():  # the K networks' parameters are stacked along the first dimension
             p[1] = p[0]
+            p[2] = -p[0]  # option 2 prefers the other action and terminates where 0 continues: not a duplicate
     frozen = lambda params, lr: torch.optim.SGD(params, lr=0.0)  # noqa: E731
     with caplog.at_level(logging.WARNING, logger="torchrl_options.discovery.discover"):
         result = discover_options(data, 3, options=options, optimizer=frozen, num_iterations=2, progress=False,
