@@ -49,6 +49,11 @@ from torchrl_options.segmentation import (
 logger = logging.getLogger("segment")
 
 
+def _sizes(value):
+    """A config's hidden sizes for discover_options: None and ints as they are, a list (Hydra ListConfig) as a list."""
+    return value if value is None or isinstance(value, int) else list(value)
+
+
 def load_data(cfg: DictConfig):
     source = cfg.data.source
     if source == "continuous":
@@ -90,7 +95,7 @@ def run(cfg: DictConfig) -> dict:
     result = discover_options(
         data, num_options, action_space=action_space, meta_control=d.meta_control, init=d.init,
         num_cells=list(d.num_cells),
-        termination_cells=list(d.termination_cells) if d.get("termination_cells") is not None else None,
+        termination_cells=_sizes(d.get("termination_cells")),
         num_iterations=d.num_iterations, lr=d.lr, batch_size=d.batch_size, m_steps=d.m_steps, restarts=d.restarts,
         tol=d.tol, seed=d.seed,
         progress=cfg.progress, return_info=True, desc=f"DDO: {num_options} options, {d.meta_control} meta-control",

@@ -558,14 +558,17 @@ def _complete_data_objective(loss, data, labels, starts):
     return -(policy + (term * has_next).sum() / has_next.sum())
 
 
+def _small_demonstrations(continuous: bool):
+    """A few short planted demonstrations and their action space: Gaussian goal-reaching or the discrete corridor."""
+    if continuous:
+        return planted_gaussian_demonstrations(6, (8, 15), seed=0)[0], "continuous"
+    return planted_corridor_demonstrations(6, 15, seed=0), "categorical"
+
+
 @pytest.mark.parametrize("continuous", [False, True])
 def test_clone_from_labels_minimises_the_complete_data_likelihood(continuous):
     """clone_from_labels takes the Adam steps of the complete-data NLL that DDOLoss's probabilities give."""
-    if continuous:
-        data, _ = planted_gaussian_demonstrations(6, (8, 15), seed=0)
-    else:
-        data = planted_corridor_demonstrations(6, 15, seed=0)
-    space = "continuous" if continuous else "categorical"
+    data, space = _small_demonstrations(continuous)
     mask = data["collector", "mask"]
     labels, starts = data["true_option"].clamp_min(0), data["true_switch"]
     torch.manual_seed(0)
@@ -619,11 +622,7 @@ def test_clone_from_labels_bad_arguments():
 @pytest.mark.parametrize("continuous", [False, True])
 def test_default_options_are_the_ones_discover_options_starts_from(continuous):
     """default_options draws the modules discover_options trains when given none (same seed, same weights)."""
-    if continuous:
-        data, _ = planted_gaussian_demonstrations(6, (8, 15), seed=0)
-    else:
-        data = planted_corridor_demonstrations(6, 15, seed=0)
-    space = "continuous" if continuous else "categorical"
+    data, space = _small_demonstrations(continuous)
     torch.manual_seed(3)
     built = default_options(data, 3, action_space=space, num_cells=5)
     fitted = discover_options(data, 3, action_space=space, num_cells=5, num_iterations=0, init="random", seed=3,

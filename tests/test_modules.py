@@ -114,6 +114,15 @@ def test_termination_cells_shape_only_the_termination_networks(cls):
     assert td["termination_logits"].shape == (9, 4)
     rebuilt = cls(**{k: v for k, v in deep.config.items() if k not in ("in_keys", "out_keys")})
     rebuilt.load_state_dict(deep.state_dict())  # the configuration rebuilds the module
+    # a file saved before termination_cells existed (no such key in its configuration) loads with num_cells
+    from torchrl_options.discovery.serialization import module_from_dict, module_to_dict
+
+    entry = module_to_dict(plain)
+    del entry["config"]["termination_cells"]
+    old = module_from_dict(entry)
+    assert old.config["termination_cells"] == [5]
+    for a, b in zip(old.parameters(), plain.parameters()):
+        torch.testing.assert_close(a, b)
 
 
 def test_hand_written_options_are_first_class():

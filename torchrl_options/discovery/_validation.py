@@ -52,6 +52,20 @@ def check_int(value: Any, name: str, *, minimum: int | None = None, allow_none: 
         raise ValueError(f"{name} must be an int >= {minimum}, got {value}.")
 
 
+def check_positive_number(value: Any, name: str) -> None:
+    """Refuses anything but a finite number above 0 (``ValueError``; ``bool`` and strings are not numbers).
+
+    Examples:
+        >>> check_positive_number(0.03, "lr")
+        >>> check_positive_number(float("nan"), "lr")
+        Traceback (most recent call last):
+        ...
+        ValueError: lr must be a positive finite number, got nan.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < float("inf"):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
+
+
 def check_trajectories(trajectories: Any, *, trajectory_key: NestedKey | None = None, mask_key: NestedKey = _MASK) -> None:
     """Checks what :func:`~torchrl_options.as_trajectory_batch` accepts, before it pads or splits anything."""
     if isinstance(trajectories, TensorDictBase):

@@ -16,7 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from torchrl_options.discovery._validation import check_int
+from torchrl_options.discovery._validation import check_int, check_positive_number
 from torchrl_options.objectives.ddo import option_log_probs
 
 __all__ = ["change_points", "clone_from_labels", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
@@ -314,8 +314,7 @@ def pretrain_on_segments(
         raise ValueError(f"features must be 'end' or 'actions', got {features!r}.")
     check_int(num_options, "num_options", minimum=1)
     check_int(num_steps, "num_steps", minimum=1)
-    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0.0 < lr < float("inf"):
-        raise ValueError(f"lr must be a positive finite number, got {lr!r}.")
+    check_positive_number(lr, "lr")
     mask = mask.bool()
     B, T = mask.shape
     action = trajectories.get(action_key)
@@ -402,8 +401,7 @@ def clone_from_labels(
         >>> clone_from_labels(options, data, mask, data["true_option"].clamp_min(0), starts, num_steps=20)
     """
     check_int(num_steps, "num_steps", minimum=1)
-    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0.0 < lr < float("inf"):
-        raise ValueError(f"lr must be a positive finite number, got {lr!r}.")
+    check_positive_number(lr, "lr")
     mask = mask.bool()
     for name, value in (("labels", labels), ("starts", starts)):
         if not isinstance(value, torch.Tensor) or value.shape != mask.shape:
