@@ -14,6 +14,7 @@ problem is not identifiable at this data size, not a local optimum), and the CPU
     python benchmarks/bench_planted_suite.py                      # every problem, seeds 0-9, both settings
     python benchmarks/bench_planted_suite.py --problems landmarks-3 --seeds 0 1 --settings defaults
     python benchmarks/bench_planted_suite.py --csv results.csv    # also one row per run
+    python benchmarks/bench_planted_suite.py --problems walls-4 --data-factor 4   # 4x the trajectories
 
 ``--set key=value`` overrides a ``discover_options`` argument for a setting named ``custom`` (values parsed as
 Python literals), to try candidates against the same suite.
@@ -37,8 +38,10 @@ from torchrl_options.testing.planted_suite import best_matching_accuracy, PLANTE
 TWO_LEVEL = "two-level-4x4"
 
 
-def run_flat(problem, seed: int, settings: dict) -> dict:
+def run_flat(problem, seed: int, settings: dict, data_factor: int = 1) -> dict:
     data, truth = problem.make(seed)
+    if data_factor != 1:  # the same problem, more trajectories
+        data, truth = problem.make(seed, data_factor * data.shape[0])
     ceiling, truth_ll = problem.ceiling(data, truth)
     start = time.process_time()
     result = discover_options(
@@ -54,8 +57,8 @@ def run_flat(problem, seed: int, settings: dict) -> dict:
                 warnings=len(result.warnings) if hasattr(result, "warnings") else 0)  # fmt: skip
 
 
-def run_two_level(seed: int, settings: dict) -> dict:
-    data = planted_two_level_demonstrations(64, 60, seed=seed)
+def run_two_level(seed: int, settings: dict, data_factor: int = 1) -> dict:
+    data = planted_two_level_demonstrations(64 * data_factor, 60, seed=seed)
     post = hierarchical_forward_backward(**planted_two_level_log_probabilities(data), marginals=True)
     ceiling = best_matching_accuracy(post.most_likely(2), data["true_option_2"])
     truth_ll = post.log_likelihood.sum().item() / data.numel()
@@ -92,6 +95,9 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="for --settings custom")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--csv", help="also write one row per run to this file")
+    parser.add_argument("--data-factor", type=int, default=1,
+                        help="draw this many times each problem's trajectories (is a missed labelling found with more "
+                             "data? then the problem is not identifiable at the suite's data size)")
     parser.add_argument("--verbose", action="store_true", help="one line per run")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -99,7 +105,10 @@ def main() -> None:
     custom = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     presets = {"defaults": {}, "paper": dict(PAPER_SETTINGS), "custom": custom}
     rows = []
-    print(f"torch {torch.__version__}, {args.threads} thread(s), seeds {args.seeds}")
+    if args.data_factor < 1:
+        parser.error(f"--data-factor must be a positive integer, got {args.data_factor}")
+    factor = f", {args.data_factor}x the trajectories" if args.data_factor != 1 else ""
+    print(f"torch {torch.__version__}, {args.threads} thread(s), seeds {args.seeds}{factor}")
     header = (f"{'problem':<14} {'setting':<9} {'ceiling':>7} {'found':>6} {'worst':>6} {'gap pts':>7} "
               f"{'dll/step':>9} {'near':>6} {'ll>=':>6} {'cpu s/10k':>9}")  # fmt: skip
     print(header)
@@ -110,9 +119,9 @@ def main() -> None:
             runs = []
             for seed in args.seeds:
                 if problem is None:
-                    row = run_two_level(seed, presets[setting])
+                    row = run_two_level(seed, presets[setting], args.data_factor)
                 else:
-                    row = run_flat(problem, seed, presets[setting])
+                    row = run_flat(problem, seed, presets[setting], args.data_factor)
                 row.update(problem=name, setting=setting, seed=seed)
                 runs.append(row)
                 if args.verbose:

@@ -50,7 +50,7 @@ SETTINGS = {
         window=2,
         num_options=4,
         discovery=dict(action_space="continuous", meta_control="learned", num_cells=16, num_iterations=300, lr=0.01,
-                       m_steps=1, restarts=1, tol=None, init="random", termination_cells=16),
+                       m_steps=1, restarts=1, tol=None, init="random", termination_cells=16, init_scale=1.0),
     ),
     "gridworld": dict(
         make=lambda n, seed: gridworld_subgoal_demonstrations(n, 200, seed=seed),

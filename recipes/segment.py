@@ -96,6 +96,7 @@ def run(cfg: DictConfig) -> dict:
         data, num_options, action_space=action_space, meta_control=d.meta_control, init=d.init,
         num_cells=list(d.num_cells),
         termination_cells=_sizes(d.get("termination_cells")),
+        init_scale=d.get("init_scale") if action_space == "continuous" else None,
         num_iterations=d.num_iterations, lr=d.lr, batch_size=d.batch_size, m_steps=d.m_steps, restarts=d.restarts,
         tol=d.tol, seed=d.seed,
         progress=cfg.progress, return_info=True, desc=f"DDO: {num_options} options, {d.meta_control} meta-control",

@@ -411,6 +411,8 @@ SEGMENT = [
     ("discovery.num_options", 0, "discovery.num_options must be an int >= 1"),
     ("discovery.lr", -1, "discovery.lr must be a number in (0, inf]"),
     ("discovery.num_cells", [0], "discovery.num_cells must be a list of ints >= 1"),
+    ("discovery.init_scale", 0.0, "discovery.init_scale must be a number in (0, inf]"),
+    ("discovery.init_scale", "one", "discovery.init_scale must be a number in (0, inf]"),
     ("segmentation.method", "greedy", "segmentation.method must be one of"),
     ("segmentation.boundary", "edge", "segmentation.boundary must be one of"),
     ("segmentation.baseline_samples", 0, "segmentation.baseline_samples must be an int >= 1"),

@@ -643,3 +643,26 @@ def test_default_options_are_the_ones_discover_options_starts_from(continuous):
     deep = discover_options(data, 3, action_space=space, num_cells=5, termination_cells=[4, 4], num_iterations=2,
                             init="random", seed=3, progress=False)  # fmt: skip
     assert deep.config["termination_cells"] == [4, 4] and deep.config["num_cells"] == [5]
+
+
+def test_init_scale_sets_the_gaussian_options_starting_scale():
+    """init_scale replaces the action spread as the fresh Gaussian options' start, in default_options and
+    discover_options alike; anything but a positive number, or a scale for discrete actions, is refused."""
+    data, space = _small_demonstrations(True)
+    torch.manual_seed(0)
+    built = default_options(data, 3, action_space=space, init_scale=0.25)
+    scale = built(data.select("observation").clone())["option_scale"]
+    torch.testing.assert_close(scale, torch.full_like(scale, 0.25), atol=1e-5, rtol=1e-4)
+    assert built.config["init_scale"] == 0.25 and built.config["min_scale"] < 0.25
+    fitted = discover_options(data, 3, action_space=space, init_scale=0.25, num_iterations=0, init="random", seed=0,
+                              progress=False)  # fmt: skip
+    for a, b in zip(built.parameters(), fitted.parameters()):
+        torch.testing.assert_close(a, b)
+    for bad in (0.0, -1.0, float("nan"), float("inf"), True, "1.0"):
+        with pytest.raises(ValueError, match="init_scale must be a positive finite number"):
+            default_options(data, 3, action_space=space, init_scale=bad)
+        with pytest.raises(ValueError, match="init_scale must be a positive finite number"):
+            discover_options(data, 3, action_space=space, init_scale=bad, progress=False)
+    corridor, _ = _small_demonstrations(False)
+    with pytest.raises(ValueError, match="init_scale .* action_space='continuous'"):
+        discover_options(corridor, 2, init_scale=1.0, progress=False)

@@ -12,7 +12,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
 from torchrl_options.checkpoints import restores_global_rng
-from torchrl_options.discovery._validation import check_discover_options, check_trajectories
+from torchrl_options.discovery._validation import check_discover_options, check_positive_number, check_trajectories
 from torchrl_options.discovery.diagnostics import option_diagnostics, restart_disagreement
 from torchrl_options.discovery.initialization import pretrain_on_clusters, pretrain_on_segments
 from torchrl_options.discovery.split_merge import check_split_merge_options, split_merge as run_split_merge
@@ -413,6 +413,17 @@ def _infer_in_features(td: TensorDictBase, obs_keys: Sequence[NestedKey]) -> int
     return total
 
 
+def _check_init_scale(init_scale: float | None, action_space: str) -> None:
+    if init_scale is None:
+        return
+    if action_space != "continuous":
+        raise ValueError(
+            f"init_scale sets the starting standard deviation of Gaussian options: it needs "
+            f"action_space='continuous', got action_space={action_space!r} with init_scale={init_scale!r}."
+        )
+    check_positive_number(init_scale, "init_scale")
+
+
 def default_options(
     data: TensorDictBase,
     num_options: int,
@@ -425,13 +436,14 @@ def default_options(
     termination_cells: int | Sequence[int] | None = None,
     activation: str = "tanh",
     architecture: str = "separate",
+    init_scale: float | None = None,
 ) -> TensorDictModuleBase:
     """The fresh options :func:`discover_options` trains when none are given (weights from the global RNG).
 
     Discrete actions get an :class:`OptionsMLP`; continuous ones a :class:`GaussianOptionsMLP` whose options all
     start at the demonstrations' own action spread (the mean per-dimension standard deviation of the valid
-    actions, clipped to ``[0.01, 1]``): a start at 1.0 can dwarf the spread and leave every option alike, a
-    symmetric start the likelihood cannot leave. Unless ``termination_cells`` is given, a Gaussian option's
+    actions, clipped to ``[0.01, 1]``) unless ``init_scale`` is given: a start at 1.0 can dwarf the spread and
+    leave every option alike, a symmetric start the likelihood cannot leave. Unless ``termination_cells`` is given, a Gaussian option's
     termination network has two hidden layers of twice the widest of ``num_cells``: one layer of tanh units
     draws half-planes, and a termination that fires within a region of a continuous state space (the planted
     suite's Gaussian options stop near their goal) is their intersection, which a second layer forms and one layer
@@ -444,7 +456,7 @@ def default_options(
     Keyword Args:
         action_space (str): ``"categorical"`` (default) or ``"continuous"``.
         num_actions (int, optional): A, for discrete actions. Defaults to ``max(action) + 1`` over valid steps.
-        obs_keys, action_key, num_cells, termination_cells, activation, architecture: as in
+        obs_keys, action_key, num_cells, termination_cells, activation, architecture, init_scale: as in
             :func:`discover_options`.
 
     Examples:
@@ -455,6 +467,7 @@ def default_options(
     """
     if action_space not in ("categorical", "continuous"):
         raise ValueError(f"action_space must be 'categorical' or 'continuous', got {action_space!r}.")
+    _check_init_scale(init_scale, action_space)
     obs_keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
     mask = data.get(_MASK) if _MASK in data.keys(include_nested=True) else torch.ones(data.batch_size, dtype=torch.bool)
     in_features = _infer_in_features(data, obs_keys)
@@ -470,8 +483,9 @@ def default_options(
         termination_cells = [width, width]
     actions = data.get(action_key)[mask]
     action_dim = actions.shape[-1]
-    spread = float(actions.float().std(0).mean()) if actions.shape[0] > 1 else 1.0
-    init_scale = min(max(spread, 1e-2), 1.0) if spread == spread else 1.0
+    if init_scale is None:
+        spread = float(actions.float().std(0).mean()) if actions.shape[0] > 1 else 1.0
+        init_scale = min(max(spread, 1e-2), 1.0) if spread == spread else 1.0
     return GaussianOptionsMLP(
         in_features, action_dim, num_options, num_cells=num_cells, termination_cells=termination_cells,
         activation=activation, in_keys=obs_keys, init_scale=init_scale, min_scale=min(1e-3, init_scale / 10),
@@ -493,6 +507,7 @@ def discover_options(
     termination_cells: int | Sequence[int] | None = None,
     activation: str = "tanh",
     architecture: str = "separate",
+    init_scale: float | None = None,
     init: str = "auto",
     num_iterations: int = 1000,
     m_steps: int = 5,
@@ -569,6 +584,9 @@ def discover_options(
         termination_cells (int or sequence of int, optional): hidden sizes of the default modules' termination
             networks. Defaults to ``num_cells`` for discrete actions and, for continuous ones, to two layers of twice
             the widest of ``num_cells`` (``[16, 16]`` with the default width; see :func:`default_options`).
+        init_scale (float, optional): for continuous actions, the standard deviation every fresh Gaussian option
+            starts at. Defaults to the demonstrations' action spread (see :func:`default_options`); ``1.0`` was the
+            default until 2026-12-05.
         init (str): how each start's options are drawn before DDO: ``"random"``, ``"kmeans"`` (pre-clustering of
             state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
             the segments clustered by where they end, each option cloned from a cluster:
@@ -644,6 +662,7 @@ def discover_options(
         raise ValueError(f"num_iterations must be an int >= 0, got {num_iterations!r}.")
     _check_m_steps(m_steps)
     _check_tol(tol, patience)
+    _check_init_scale(init_scale, action_space)
     if isinstance(num_cells, str) and num_cells != "auto":
         raise ValueError(f"num_cells must be an int, a sequence of ints or 'auto', got {num_cells!r}.")
     _check_split_merge(split_merge, split_merge_iterations, num_options, options, meta_control, architecture,
@@ -708,7 +727,7 @@ def discover_options(
         common = dict(
             meta_control=meta_control, num_actions=num_actions, action_space=action_space, obs_keys=obs_keys,
             action_key=action_key, termination_cells=termination_cells, activation=activation,
-            architecture=architecture, num_iterations=num_iterations,
+            architecture=architecture, init_scale=init_scale, num_iterations=num_iterations,
             m_steps=m_steps, tol=tol, patience=patience, batch_size=batch_size, optimizer=optimizer, lr=lr,
             lr_scheduler=lr_scheduler, device=device, seed=seed, progress=progress, log_every=log_every,
             return_info=True,
@@ -743,7 +762,7 @@ def discover_options(
             options = default_options(
                 data, num_options, action_space=action_space, num_actions=num_actions, obs_keys=obs_keys,
                 action_key=action_key, num_cells=num_cells, termination_cells=termination_cells, activation=activation,
-                architecture=architecture,
+                architecture=architecture, init_scale=init_scale,
             )
         options = options.to(device)
         if meta_control == "uniform":

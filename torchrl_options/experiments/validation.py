@@ -269,6 +269,8 @@ def check_segment_settings(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"discovery.num_cells must be a list of ints >= 1, got {cells!r}.")
     _int(d, "num_iterations", "discovery.num_iterations", 0)
     _number(d, "lr", "discovery.lr", 0, float("inf"), lo_open=True)
+    if d.get("init_scale") is not None:
+        _number(d, "init_scale", "discovery.init_scale", 0, float("inf"), lo_open=True)
     _int(d, "batch_size", "discovery.batch_size", 1, allow_none=True)
     _int(d, "seed", "discovery.seed", 0, allow_none=True)
     s = _section(cfg, "segmentation")

@@ -331,8 +331,10 @@ class PlantedProblem:
         num_options (int): K, the planted number of options (discovery is asked for as many).
         action_space (str): ``"categorical"`` or ``"continuous"``.
         description (str): what makes the problem hard.
-        make (callable): ``make(seed) -> (data, truth)``: demonstrations with ``"true_option"`` and the truth's
-            E-step inputs (``log_pi``, ``log_term``, ``log_cont``, ``log_eta``, ``mask``).
+        make (callable): ``make(seed, num_trajectories=None) -> (data, truth)``: demonstrations with
+            ``"true_option"`` and the truth's E-step inputs (``log_pi``, ``log_term``, ``log_cont``, ``log_eta``,
+            ``mask``); ``num_trajectories`` defaults to the problem's own data size (used to ask whether labels
+            missed at that size are found with more data).
     """
 
     name: str
@@ -346,11 +348,13 @@ class PlantedProblem:
         return posterior_accuracy(truth, data["true_option"])
 
 
-def _tabular_problem(spec: dict, num_trajectories: int, lengths: tuple[int, int]) -> Callable[[int], tuple]:
-    def make(seed: int):
+def _tabular_problem(spec: dict, num_trajectories: int, lengths: tuple[int, int]) -> Callable[..., tuple]:
+    default = num_trajectories
+
+    def make(seed: int, num_trajectories: int | None = None):
         data = planted_tabular_demonstrations(
             spec["policy"], spec["termination"], spec["next_state"], spec["features"],
-            num_trajectories=num_trajectories, lengths=lengths, seed=seed,
+            num_trajectories=default if num_trajectories is None else num_trajectories, lengths=lengths, seed=seed,
         )  # fmt: skip
         return data, tabular_log_probabilities(data, spec["policy"], spec["termination"])
 
@@ -389,7 +393,7 @@ PLANTED_SUITE: list[PlantedProblem] = [
     PlantedProblem(
         "gaussian-3", 3, "continuous",
         "continuous 2-D point, 3 Gaussian options steering to 3 goals, terminate near the goal",
-        lambda seed: planted_gaussian_demonstrations(128, (40, 100), seed=seed),
+        lambda seed, num_trajectories=None: planted_gaussian_demonstrations(num_trajectories or 128, (40, 100), seed=seed),
     ),
 ]
 """The one-level problems of the planted suite (``benchmarks/bench_planted_suite.py``). The two-level problem is
