@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> dict:
         p_right = torch.softmax(out["option_logits"], -1)[..., 1].mean(0)  # [K]
         p_stop = torch.sigmoid(out["termination_logits"])  # [cells, K], cells left to right
     accuracy = label_accuracy(labels, data["true_option"])
-    last = result.history[-1]
+    with torch.no_grad():  # the returned options' own figures (the fit ends at its best iteration, not its last)
+        last = {k: float(v) for k, v in DDOLoss(result.options)(data).items() if v.numel() == 1}
     print(f"Discovered {len(result.option_usage)} options from {data.batch_size[0]} demonstrations of "
           f"{data.batch_size[1]} steps in a 10-cell corridor:")  # fmt: skip
     for k, usage in enumerate(result.option_usage):

@@ -19,7 +19,9 @@ from torchrl_options import (
 from torchrl_options.discovery import (
     change_points,
     clone_from_labels,
+    CONTINUOUS_PATIENCE,
     converged_at,
+    DEFAULT_PATIENCE,
     default_options,
     fit_ddo,
     kmeans,
@@ -666,3 +668,49 @@ def test_init_scale_sets_the_gaussian_options_starting_scale():
     corridor, _ = _small_demonstrations(False)
     with pytest.raises(ValueError, match="init_scale .* action_space='continuous'"):
         discover_options(corridor, 2, init_scale=1.0, progress=False)
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_default_patience_depends_on_the_action_space(continuous):
+    """patience=None is DEFAULT_PATIENCE for discrete actions and CONTINUOUS_PATIENCE for Gaussian options: with a
+    tol no gain can reach, training stops at the first iteration the window allows."""
+    data, space = _small_demonstrations(continuous)
+    expected = CONTINUOUS_PATIENCE if continuous else DEFAULT_PATIENCE
+    result = discover_options(data, 2, action_space=space, tol=1e9, num_iterations=300, restarts=1, init="random",
+                              m_steps=1, seed=0, progress=False, return_info=True)  # fmt: skip
+    assert result.converged and len(result.history) == expected + 1
+    explicit = discover_options(data, 2, action_space=space, tol=1e9, patience=7, num_iterations=300, restarts=1,
+                                init="random", m_steps=1, seed=0, progress=False, return_info=True)  # fmt: skip
+    assert len(explicit.history) == 8
+    with pytest.raises(ValueError, match="patience must be a positive int"):
+        discover_options(data, 2, action_space=space, patience=0, progress=False)
+
+
+def test_fit_ddo_keep_best_restores_the_best_recorded_iteration():
+    """keep_best leaves the module at the parameters of the highest recorded log-likelihood; without it, at the
+    last step's (a learning rate large enough to make the likelihood go up and down tells the two apart)."""
+    data = planted_corridor_demonstrations(8, 30, seed=0)
+
+    def run(keep_best: bool):
+        torch.manual_seed(0)
+        loss = DDOLoss(OptionsMLP(2, 2, 2, num_cells=4))
+        opt = torch.optim.Adam(loss.parameters(), lr=0.8)
+        records = fit_ddo(loss, opt, lambda it: data, 40, progress=False, keep_best=keep_best)
+        with torch.no_grad():
+            final = loss(data)["log_likelihood_per_step"].item()
+        return [r["log_likelihood_per_step"] for r in records], final
+
+    lls, final = run(True)
+    assert any(b < a for a, b in zip(lls, lls[1:])), "the test needs a likelihood that goes down somewhere"
+    assert final == pytest.approx(max(lls), abs=1e-6)
+    lls_last, final_last = run(False)
+    assert lls_last == lls and final_last != pytest.approx(max(lls), abs=1e-6)
+
+
+def test_discover_options_with_the_stopping_rule_returns_its_best_iteration():
+    data = planted_corridor_demonstrations(8, 30, seed=0)
+    result = discover_options(data, 2, restarts=1, init="random", lr=0.5, num_iterations=60, tol=1e-4, seed=0,
+                              progress=False, return_info=True)  # fmt: skip
+    with torch.no_grad():
+        ll = DDOLoss(result.options)(data)["log_likelihood_per_step"].item()
+    assert ll == pytest.approx(max(h["log_likelihood_per_step"] for h in result.history), abs=1e-5)
