@@ -171,17 +171,19 @@ def test_kept_suite_figures_are_quoted():
     from pathlib import Path
 
     page = (Path(__file__).resolve().parents[1] / "docs" / "experiments" / "planted_suite.md").read_text()
-    for name in ("defaults", "random_starts"):
+    for name in ("defaults", "defaults_2026-12-05", "random_starts"):
         rows = _suite_rows(name)
         problems = list(dict.fromkeys(r["problem"] for r in rows))
-        assert set(problems) == {p.name for p in PLANTED_SUITE}
+        two_level = {"two-level-4x4"} if name == "defaults" else set()
+        assert set(problems) == {p.name for p in PLANTED_SUITE} | two_level
         for problem in problems:
             assert sum(r["problem"] == problem for r in rows) == 10, (name, problem)
             row = suite_table_row(problem, rows)
             assert row in page, f"{name}: {row}"
     # gaussian-3 with one-layer, 16-unit (the defaults) and 32-unit two-layer termination networks
     for name, label in (("gaussian3_one_layer", "one layer of 8 (the previous defaults)"),
-                        ("defaults", "**two layers of 16 (the defaults)**"),
+                        ("defaults_2026-12-05",
+                         "**two layers of 16 (the defaults; stopped after 20 iterations without gain until 2026-12-06)**"),
                         ("gaussian3_termination32", "two layers of 32")):  # fmt: skip
         rows = [r for r in _suite_rows(name) if r["problem"] == "gaussian-3"]
         assert sorted(r["seed"] for r in rows) == list(range(10)), name
@@ -195,4 +197,18 @@ def test_kept_suite_figures_are_quoted():
         for problem in expected:
             assert sorted(r["seed"] for r in rows if r["problem"] == problem) == list(range(10)), (name, problem)
             row = suite_table_row(problem, rows)
+            assert row in page, f"{name}: {row}"
+    # four times the trajectories: walls-4 and geometric-4 (seeds 0-9), landmarks-8 (seeds 0-4)
+    for name, expected, seeds in (("four_times_the_data", {"walls-4", "geometric-4"}, 10),
+                                  ("landmarks8_four_times_the_data", {"landmarks-8"}, 5)):  # fmt: skip
+        rows = _suite_rows(name)
+        assert {r["problem"] for r in rows} == expected
+        for problem in expected:
+            runs = [r for r in rows if r["problem"] == problem]
+            assert sorted(r["seed"] for r in runs) == list(range(seeds)), (name, problem)
+            mean = lambda k: sum(r[k] for r in runs) / len(runs)  # noqa: E731
+            near = sum(r["ceiling"] - r["accuracy"] <= 0.02 and r["ll"] >= r["truth_ll"] - 1e-3 for r in runs)
+            row = (f"| {mean('ceiling'):.3f} | {mean('accuracy'):.3f} | "
+                   f"{100 * max(r['ceiling'] - r['accuracy'] for r in runs):.1f} | "
+                   f"{mean('ll') - mean('truth_ll'):+.4f} | {near}/{seeds} |")  # fmt: skip
             assert row in page, f"{name}: {row}"
