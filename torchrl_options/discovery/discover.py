@@ -627,8 +627,9 @@ def discover_options(
         tol (float, optional): stopping rule: stop once the log-likelihood per step has gained less than ``tol``
             nats over the last ``patience`` iterations (see :func:`converged_at`; meant for full-batch training,
             minibatch estimates are noisy). Defaults to 1e-4; ``None`` runs all ``num_iterations``. With ``tol`` on
-            the full batch, the options returned are those of the iteration with the highest log-likelihood per
-            step (``fit_ddo(keep_best=True)``), not the last one.
+            the full batch, the last training (the chosen start's, continued) ends at its iteration with the
+            highest log-likelihood per step (``fit_ddo(keep_best=True)``), not at its last one; a start that meets
+            the stopping rule within ``restart_iterations`` is returned as it stopped.
         patience (int, optional): the stopping rule's window, in iterations. Defaults to 20 for discrete actions and
             to :data:`CONTINUOUS_PATIENCE` (100) for continuous ones: a Gaussian fit's likelihood pauses for tens of
             iterations and then climbs again (measured in ``docs/experiments/planted_suite.md``).

@@ -393,7 +393,9 @@ PLANTED_SUITE: list[PlantedProblem] = [
     PlantedProblem(
         "gaussian-3", 3, "continuous",
         "continuous 2-D point, 3 Gaussian options steering to 3 goals, terminate near the goal",
-        lambda seed, num_trajectories=None: planted_gaussian_demonstrations(num_trajectories or 128, (40, 100), seed=seed),
+        lambda seed, num_trajectories=None: planted_gaussian_demonstrations(
+            128 if num_trajectories is None else num_trajectories, (40, 100), seed=seed
+        ),
     ),
 ]
 """The one-level problems of the planted suite (``benchmarks/bench_planted_suite.py``). The two-level problem is
