@@ -198,9 +198,11 @@ def test_kept_suite_figures_are_quoted():
             assert sorted(r["seed"] for r in rows if r["problem"] == problem) == list(range(10)), (name, problem)
             row = suite_table_row(problem, rows)
             assert row in page, f"{name}: {row}"
-    # more trajectories: 4x for walls-4 and geometric-4 (seeds 0-9) and landmarks-8 (seeds 0-4), 16x for walls-4
+    # more trajectories: 4x for walls-4, geometric-4 and the two-level problem (seeds 0-9) and landmarks-8 (seeds
+    # 0-4), 16x for walls-4
     for name, expected, seeds in (("four_times_the_data", {"walls-4", "geometric-4"}, 10),
                                   ("landmarks8_four_times_the_data", {"landmarks-8"}, 5),
+                                  ("two_level_four_times_the_data", {"two-level-4x4"}, 10),
                                   ("walls4_sixteen_times_the_data", {"walls-4"}, 10)):  # fmt: skip
         rows = _suite_rows(name)
         assert {r["problem"] for r in rows} == expected

@@ -277,6 +277,42 @@ def test_intra_option_condition_and_its_option_usage():
     _close(agent)
 
 
+def test_option_usage_counts_steps_when_discounting_per_decision():
+    """Per decision, ``steps_to_next_obs`` is 1 for the bootstrap whatever an option's length; ``option_usage``
+    reads the decisions' true lengths (``"decision_steps"``), so options that run several steps are not reported
+    as one-step runs. The lengths add up to the env steps the agent took."""
+    from torchrl_options.modules import OptionsMLP
+
+    config = AtariConfig(max_episode_steps=40, hidden_sizes=(8, 8, 8), frames_per_batch=40, learning_starts=10**9,
+                         discount_per="decision")
+    n = _num_actions("Pooyan", config)
+    torch.manual_seed(0)
+    options = OptionsMLP(128, n, 2, num_cells=[8])
+    with torch.no_grad():  # terminations that rarely fire (sigmoid(-3) = 0.05): options run several steps
+        last = [name for name, m in options.termination._empty_net.named_children() if isinstance(m, torch.nn.Linear)][-1]
+        options.termination.params.get((last, "weight")).zero_()
+        options.termination.params.get((last, "bias")).fill_(-3.0)
+    for intra in (False, True):
+        agent = _make_agent("Pooyan", config, 0, "both", options=options, num_options=2, intra_option_actions=intra)
+        agent.env.set_seed(0)
+        agent.train(total_frames=200)
+        buf = agent.replay_buffer[: len(agent.replay_buffer)]
+        decisions = buf[~buf["intra_option"].reshape(-1)] if intra else buf
+        assert (decisions["steps_to_next_obs"] == 1).all()
+        lengths = decisions["decision_steps"].reshape(-1)
+        is_option = decisions["action"].reshape(-1) >= n
+        assert is_option.any() and (lengths[is_option] > 1).any()
+        assert (lengths[~is_option] == 1).all()
+        assert int(lengths.sum()) <= 200  # (the steps of decisions still running are not stored yet)
+        usage = option_usage(agent, n)
+        assert usage["mean_option_steps"] == pytest.approx(float(lengths[is_option].float().mean()))
+        assert usage["mean_option_steps"] > 1.0
+        assert usage["option_step_share"] == pytest.approx(float(lengths[is_option].sum() / lengths.sum()))
+        if intra:
+            assert (buf[buf["intra_option"].reshape(-1)]["decision_steps"] == 1).all()
+        _close(agent)
+
+
 def test_greedy_options_condition_acts_by_argmax():
     """H1g's agent runs each option with the argmax of its control policy at every step; H1's samples from it."""
     from torchrl_options.modules import OptionsMLP

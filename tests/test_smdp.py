@@ -91,14 +91,20 @@ def test_discount_per_decision_hand_computed():
     reward = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
     out = smdp_transitions(steps(decision, done, reward), 0.9, discount_per="decision")
     assert out["steps_to_next_obs"].reshape(-1).tolist() == [1, 1, 1]
+    # the decisions' true lengths are kept apart from the bootstrap's k (3 steps, 1 step, 2 steps)
+    assert out["decision_steps"].reshape(-1).tolist() == [3, 1, 2]
+    assert out["decision_steps"].shape == out["steps_to_next_obs"].shape
     torch.testing.assert_close(out["next", "reward"].reshape(-1), torch.tensor([6.0, 4.0, 11.0]))
     assert out["next", "observation"].tolist() == [3.0, 4.0, 6.0]
+    # per step, the length is steps_to_next_obs itself: no second key
+    assert "decision_steps" not in smdp_transitions(steps(decision, done, reward), 0.9).keys()
     # an option running over a batch boundary: its partial sum is carried, still undiscounted
-    smdp = SMDPTransitions(0.5, discount_per="decision")
+    smdp = SMDPTransitions(0.5, discount_per="decision", duration_key=("stats", "length"))
     first = smdp(steps([True, False, False], [False] * 3, [1.0, 1.0, 1.0]))
     assert first.shape[0] == 0
     second = smdp(steps([False, True], [False, False], [1.0, 1.0]))
     assert second["steps_to_next_obs"].reshape(-1).tolist() == [1]
+    assert second["stats", "length"].reshape(-1).tolist() == [4]  # 3 steps carried over + 1
     torch.testing.assert_close(second["next", "reward"].reshape(-1), torch.tensor([4.0]))
     with pytest.raises(ValueError, match="discount_per"):
         SMDPTransitions(0.9, discount_per="episode")

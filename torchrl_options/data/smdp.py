@@ -15,7 +15,9 @@ inside the option (the authors' code summed them undiscounted and bootstrapped w
 A truncated episode keeps ``terminated=False`` and is bootstrapped.
 
 ``discount_per="decision"`` instead treats every decision as one time-step of a decision-level MDP: the rewards
-of a decision are summed undiscounted and ``k = 1``, so the bootstrap uses a single ``gamma``. That is the
+of a decision are summed undiscounted and ``k = 1``, so the bootstrap uses a single ``gamma`` (the decision's
+length in primitive steps is then written apart, under ``duration_key``, ``"decision_steps"`` by default, for
+statistics such as how long options ran). That is the
 consistent choice only when time itself is counted in decisions (e.g. an episode limit in decisions, with the
 :class:`~torchrl_options.transforms.DecisionCounter`); with the default, a primitive step towards a goal followed
 by an option is worth as much as the option alone, whatever the decision budget.
@@ -45,6 +47,7 @@ def smdp_transitions(
     done_key: NestedKey = ("next", "done"),
     steps_key: NestedKey = "steps_to_next_obs",
     discount_per: str = "step",
+    duration_key: NestedKey = "decision_steps",
 ) -> TensorDictBase:
     r"""Turns a batch of step-level data into one transition per decision.
 
@@ -69,6 +72,9 @@ def smdp_transitions(
         discount_per (str): ``"step"`` (default: ``gamma`` per primitive step, the SMDP formulation) or
             ``"decision"`` (rewards of a decision summed, ``k = 1``: ``gamma`` per decision; see the module
             docstring).
+        duration_key (NestedKey): with ``discount_per="decision"``, where the decision's length in primitive steps
+            is written (``steps_key`` then holds 1). Not written with ``"step"``, where ``steps_key`` is the length.
+            Defaults to ``"decision_steps"``.
 
     Returns:
         A TensorDict of shape ``[M]``, one entry per decision: the root entries of the decision step
@@ -97,7 +103,7 @@ def smdp_transitions(
         >>> out["next", "observation"]  # the 3-step option ends at the next decision, s_3
         tensor([3., 4.])
     """
-    keys = _Keys(decision_key, reward_key, done_key, steps_key)
+    keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key)
     out, _ = _decisions(data, _check_gamma(gamma), None, keys, _per_decision(discount_per))
     return out
 
@@ -114,7 +120,7 @@ class SMDPTransitions:
         gamma (float): the discount factor.
 
     Keyword Args:
-        decision_key, reward_key, done_key, steps_key (NestedKey): as in :func:`smdp_transitions`.
+        decision_key, reward_key, done_key, steps_key, duration_key (NestedKey): as in :func:`smdp_transitions`.
         discount_per (str): ``"step"`` (default) or ``"decision"``, as in :func:`smdp_transitions`.
 
     Examples:
@@ -134,10 +140,11 @@ class SMDPTransitions:
         done_key: NestedKey = ("next", "done"),
         steps_key: NestedKey = "steps_to_next_obs",
         discount_per: str = "step",
+        duration_key: NestedKey = "decision_steps",
     ):
         self.gamma = _check_gamma(gamma)
         self.per_decision = _per_decision(discount_per)
-        self.keys = _Keys(decision_key, reward_key, done_key, steps_key)
+        self.keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key)
         self._carry: _Carry | None = None
 
     def __call__(self, data: TensorDictBase) -> TensorDictBase:
@@ -176,11 +183,12 @@ def _per_decision(discount_per: str) -> bool:
 
 
 class _Keys:
-    def __init__(self, decision_key, reward_key, done_key, steps_key):
+    def __init__(self, decision_key, reward_key, done_key, steps_key, duration_key="decision_steps"):
         self.decision = unravel_key(decision_key)
         self.reward = unravel_key(reward_key)
         self.done = unravel_key(done_key)
         self.steps = unravel_key(steps_key)
+        self.duration = unravel_key(duration_key)
 
 
 class _Carry:
@@ -269,6 +277,8 @@ def _decisions(
     starts = segment[ends]
     k = torch.ones_like(length) if per_decision else length
     out = _assemble(flat, starts, ends, returns, k.reshape(-1), keys)
+    if per_decision:  # k is 1 for the bootstrap; the decision's length in steps is kept apart
+        _set_like_steps(out, keys.duration, length.reshape(-1)[ends], keys)
 
     last = torch.arange(N, device=device) * T + T - 1
     carried = _assemble(flat, segment[last], last, returns, length.reshape(-1), keys, steps_entry=False)
@@ -290,9 +300,20 @@ def _assemble(
     reward = returns[starts]
     out.set(keys.reward, reward)
     if steps_entry:
-        k = length[ends]
-        out.set(keys.steps, k.view(k.shape[0], *([1] * (reward.ndim - 1))) if reward.ndim > 1 else k)
+        _set_like_steps(out, keys.steps, length[ends], keys)
     return out
+
+
+def _set_like_steps(out: TensorDictBase, key: NestedKey, value: torch.Tensor, keys: _Keys) -> None:
+    """Writes a per-transition count with the reward's trailing singleton dims (as ``steps_to_next_obs``)."""
+    ndim = out.get(keys.reward).ndim
+    out.set(key, value.view(value.shape[0], *([1] * (ndim - 1))) if ndim > 1 else value)
+
+
+def _copy_duration(part: TensorDictBase, *, steps_key: NestedKey, duration_key: NestedKey) -> TensorDictBase:
+    """Copies ``steps_key`` to ``duration_key`` (in place): one-step transitions written beside per-decision ones."""
+    part.set(duration_key, part.get(steps_key).clone())
+    return part
 
 
 class SMDPTransform(Transform):
@@ -328,7 +349,8 @@ class SMDPTransform(Transform):
         num_actions (int, optional): the number of primitive actions ``A`` of the executor (``None`` for an executor
             with ``primitive_actions=False``, whose options are actions ``0 .. K-1``).
         marker_key (NestedKey): marks the intra-option and suffix transitions. Defaults to ``"intra_option"``.
-        decision_key, reward_key, done_key, steps_key (NestedKey): as in :func:`smdp_transitions`.
+        decision_key, reward_key, done_key, steps_key, duration_key (NestedKey): as in :func:`smdp_transitions`
+            (with ``discount_per="decision"`` the intra-option transitions get ``duration_key`` = 1 too).
         action_key, executed_action_key, executed_option_key (NestedKey): as in
             :func:`~torchrl_options.data.intra_option_transitions`.
 
@@ -379,6 +401,7 @@ class SMDPTransform(Transform):
         reward_key: NestedKey = ("next", "reward"),
         done_key: NestedKey = ("next", "done"),
         steps_key: NestedKey = "steps_to_next_obs",
+        duration_key: NestedKey = "decision_steps",
         action_key: NestedKey = "action",
         executed_action_key: NestedKey = ("next", "executed_action"),
         executed_option_key: NestedKey = ("next", "executed_option"),
@@ -405,6 +428,7 @@ class SMDPTransform(Transform):
             reward_key=reward_key,
             done_key=done_key,
             steps_key=steps_key,
+            duration_key=duration_key,
             discount_per=discount_per,
         )
         self.intra_option_actions = intra_option_actions
@@ -462,6 +486,9 @@ class SMDPTransform(Transform):
                         steps_key=keys.steps,
                     )
                 )
+            if self.smdp.per_decision:
+                for part in parts[1:]:
+                    _copy_duration(part, steps_key=keys.steps, duration_key=keys.duration)
             for i, part in enumerate(parts):
                 part.set(self.marker_key, torch.full(part.shape, i > 0, dtype=torch.bool, device=part.device))
             out = torch.cat(parts, 0)

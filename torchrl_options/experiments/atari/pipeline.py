@@ -209,7 +209,8 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
     Reads the decisions stored from position ``start`` on (to skip decisions copied in by a warm start), up to
     the buffer's capacity, leaving out the one-step transitions of steps inside options (``"intra_option"``, with
     ``OptionsDQNConfig.intra_option_actions``). A decision is an option when its action index is ``num_actions`` or
-    more.
+    more. A decision's length is its ``"decision_steps"`` (written with ``discount_per="decision"``, where
+    ``steps_to_next_obs`` is 1 for the bootstrap), else its ``steps_to_next_obs``.
 
     Returns:
         ``option_decision_share`` (fraction of decisions that started an option), ``option_step_share``
@@ -232,7 +233,9 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
     if "intra_option" in data.keys():
         data = data[~data.get("intra_option").reshape(-1)]
     is_option = data.get("action").reshape(-1) >= num_actions
-    steps = data.get("steps_to_next_obs").reshape(-1).float()
+    # per decision, steps_to_next_obs is 1 whatever the length: the length is kept in "decision_steps"
+    steps_key = "decision_steps" if "decision_steps" in data.keys() else "steps_to_next_obs"
+    steps = data.get(steps_key).reshape(-1).float()
     option_steps = steps[is_option]
     return {
         "option_decision_share": float(is_option.float().mean()),
