@@ -7,6 +7,10 @@ per encoding, the demonstrations' log-likelihood per step under the options next
 demonstrator's own (``log(1 - eps + eps / A)``), and the gap. CPU, a few minutes on one core:
 
     python benchmarks/bench_atari_option_fit.py --game Pooyan --demos 10 --seeds 0 1
+
+``--fits ITERATIONS:G_STEPS:LR:BATCH ...`` fits several DDO settings on the same demonstrations (``BATCH`` a number of
+trajectories per iteration, or ``all``), e.g. the Atari recipe's phase 2 (``500:1:0.001:20``) against more G-steps;
+``--encodings one_hot`` leaves out the ``bytes`` options.
 """
 from __future__ import annotations
 
@@ -34,7 +38,11 @@ def main() -> None:
     parser.add_argument("--ddo-lr", type=float, default=0.005)
     parser.add_argument("--cells", type=int, nargs="+", default=[64, 64])
     parser.add_argument("--env-semantics", default="project", choices=["project", "paper"])
+    parser.add_argument("--encodings", nargs="+", default=["one_hot", "bytes"], choices=["one_hot", "bytes"])
+    parser.add_argument("--fits", nargs="+", default=None, metavar="ITERATIONS:G_STEPS:LR:BATCH",
+                        help="DDO settings fitted on the same demonstrations (default: the --ddo-* flags, full batch)")
     args = parser.parse_args()
+    fits = [_parse_fit(f) for f in args.fits] if args.fits else [(args.ddo_iterations, args.ddo_m_steps, args.ddo_lr, None)]
     torch.set_num_threads(1)
     rows = []
     for seed in args.seeds:
@@ -48,25 +56,38 @@ def main() -> None:
         t0 = time.time()
         _train_episodes(agent, args.phase1_episodes, os.devnull, AtariConfig(**base))
         t1 = time.time() - t0
-        for encoding in ("one_hot", "bytes"):
-            config = AtariConfig(**base, option_encoding=encoding)
-            with tempfile.TemporaryDirectory() as d:
-                t0 = time.time()
-                _, meta = _phase2(args.game, config, seed, d, agent)
-            rows.append((seed, encoding, meta, time.time() - t0, t1))
+        for iterations, m_steps, lr, batch in fits:
+            fit = dict(base, ddo_iterations=iterations, ddo_m_steps=m_steps, ddo_lr=lr, ddo_batch_size=batch)
+            for encoding in args.encodings:
+                config = AtariConfig(**fit, option_encoding=encoding)
+                with tempfile.TemporaryDirectory() as d:
+                    t0 = time.time()
+                    _, meta = _phase2(args.game, config, seed, d, agent)
+                label = f"{iterations}:{m_steps}:{lr:g}:{batch or 'all'}"
+                rows.append((seed, encoding, label, meta, time.time() - t0, t1))
         _close(agent)
     print(f"\n{args.game}, {args.demos} greedy demonstrations of <= {args.max_steps} steps after {args.phase1_episodes} "
-          f"DQN episodes; DDO {args.ddo_iterations} iterations x {args.ddo_m_steps} G-steps, lr {args.ddo_lr}, "
-          f"hidden {args.cells}, env {args.env_semantics}\n")
-    print("| seed | options | K | demo steps | options: log-lik / step | demonstrator's own | gap (nats/step) | "
+          f"DQN episodes; DDO fits as iterations:G-steps:lr:batch; hidden {args.cells}, env {args.env_semantics}\n")
+    print("| seed | options | DDO fit | K | demo steps | options: log-lik / step | demonstrator's own | gap (nats/step) | "
           "within 0.05 | demo mean return | random policy's | DDO s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for seed, encoding, meta, seconds, _ in rows:
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for seed, encoding, label, meta, seconds, _ in rows:
         ll, own = meta["options_log_likelihood_per_step"], meta["demonstrator_log_likelihood_per_step"]
         demo = sum(meta["demo_returns"]) / len(meta["demo_returns"])
         rand = sum(meta["random_returns"]) / max(len(meta["random_returns"]), 1)
-        print(f"| {seed} | {encoding} | {meta['num_options']} | {meta['demo_frames']} | {ll:.4f} | {own:.4f} | "
+        print(f"| {seed} | {encoding} | {label} | {meta['num_options']} | {meta['demo_frames']} | {ll:.4f} | {own:.4f} | "
               f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | {seconds:.0f} |")
+
+
+def _parse_fit(text: str) -> tuple[int, int, float, int | None]:
+    parts = text.split(":")
+    try:
+        if len(parts) != 4:
+            raise ValueError
+        batch = None if parts[3] == "all" else int(parts[3])
+        return int(parts[0]), int(parts[1]), float(parts[2]), batch
+    except ValueError:
+        raise SystemExit(f"--fits: expected ITERATIONS:G_STEPS:LR:BATCH (BATCH a number or 'all'), got {text!r}.")
 
 
 if __name__ == "__main__":

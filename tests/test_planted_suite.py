@@ -140,6 +140,28 @@ def test_defaults_reach_the_bayes_ceiling_on_the_whole_suite(problem, seed):
     assert acc >= ceiling - 0.02 or ll >= truth_ll, (acc, ceiling, ll, truth_ll)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(3))
+def test_discover_hierarchy_defaults_on_the_two_level_member(seed):
+    """The suite's two-level member (``two-level-4x4`` of ``benchmarks/bench_planted_suite.py``): 64 trajectories of
+    a planted 4-over-4 hierarchy, ``discover_hierarchy`` with its defaults. Level 2's labels within 2 points of the
+    truth's own posterior, or (not identifiable at this data size) a likelihood at or above the truth's."""
+    from torchrl_options.hierarchy import discover_hierarchy, hierarchical_forward_backward, HierarchicalDDOLoss
+    from torchrl_options.testing import planted_two_level_demonstrations, planted_two_level_log_probabilities
+
+    data = planted_two_level_demonstrations(64, 60, seed=seed)
+    truth = hierarchical_forward_backward(**planted_two_level_log_probabilities(data), marginals=True)
+    ceiling = best_matching_accuracy(truth.most_likely(2), data["true_option_2"])
+    truth_ll = truth.log_likelihood.sum().item() / data.numel()
+    hierarchy = discover_hierarchy(data, [4, 4], seed=seed, progress=False)
+    loss = HierarchicalDDOLoss(hierarchy.options(2), hierarchy.levels[:1], num_actions=4)
+    with torch.no_grad():
+        acc = best_matching_accuracy(loss.posterior(data).most_likely(2), data["true_option_2"])
+        ll = loss(data)["log_likelihood_per_step"].item()
+    assert math.isfinite(ll) and ceiling > 0.9
+    assert acc >= ceiling - 0.02 or ll >= truth_ll, (acc, ceiling, ll, truth_ll)
+
+
 def _suite_rows(name):
     """The rows of a kept ``results/planted_suite/<name>.csv`` (one per problem and seed)."""
     import csv
