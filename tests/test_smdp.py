@@ -108,6 +108,10 @@ def test_discount_per_decision_hand_computed():
     torch.testing.assert_close(second["next", "reward"].reshape(-1), torch.tensor([4.0]))
     with pytest.raises(ValueError, match="discount_per"):
         SMDPTransitions(0.9, discount_per="episode")
+    with pytest.raises(ValueError, match="duration_key and steps_key are both 'steps_to_next_obs'"):
+        SMDPTransitions(0.9, discount_per="decision", duration_key="steps_to_next_obs")
+    with pytest.raises(TypeError, match="duration_key must be a NestedKey .* got 3"):
+        smdp_transitions(steps(decision, done, reward), 0.9, duration_key=3)
 
 
 def test_truncated_episode_is_not_terminal():
@@ -358,6 +362,27 @@ def test_replay_buffer_transform_equals_function_path(extras):
     assert sample.shape == (8,) and "steps_to_next_obs" in sample.keys()
     transform.reset()
     assert transform.num_pending == 0
+
+
+def test_replay_buffer_transform_per_decision_keeps_lengths_beside_intra_option_steps():
+    """Per decision, the stored decisions have k = 1 and their true lengths in "decision_steps" (those of the
+    per-step path's k); the intra-option transitions stored beside them get "decision_steps" = 1, so both fit one
+    buffer."""
+    batches = _collector_batches()
+    per_step = SMDPTransitions(0.9)
+    lengths = torch.cat([per_step(b)["steps_to_next_obs"] for b in batches])
+    transform = SMDPTransform(0.9, discount_per="decision", intra_option_actions=True, num_actions=2)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=8)
+    rb.append_transform(transform)
+    for batch in batches:
+        rb.extend(batch)
+    stored = rb[:]
+    intra = stored["intra_option"].reshape(-1)
+    decisions, one_step = stored[~intra], stored[intra]
+    assert one_step.shape[0] > 0 and (decisions["steps_to_next_obs"] == 1).all()
+    assert (lengths > 1).any()
+    torch.testing.assert_close(decisions["decision_steps"], lengths)
+    assert (one_step["decision_steps"] == 1).all()
 
 
 def test_replay_buffer_transform_with_dqn_loss_targets():

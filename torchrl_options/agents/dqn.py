@@ -516,8 +516,7 @@ class OptionsDQN:
             parts.append(option_suffix_transitions(batch, self.config.gamma, action_offset=self._num_primitive or 0))
         for part in parts[1:]:
             part.set("intra_option", torch.ones(part.shape, dtype=torch.bool, device=part.device))
-            if self.smdp.per_decision:  # the decisions carry their length apart from k = 1: so do these
-                part.set(self.smdp.keys.duration, part.get(self.smdp.keys.steps).clone())
+            self.smdp.with_duration(part)  # per decision, the decisions carry their length apart from k = 1
         return torch.cat([parts[0]] + [p.to(decisions.device) for p in parts[1:]], 0)
 
     def _update(self) -> None:

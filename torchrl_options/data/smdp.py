@@ -164,6 +164,24 @@ class SMDPTransitions:
         """Forgets the decisions carried over from the previous batch."""
         self._carry = None
 
+    def with_duration(self, transitions: TensorDictBase) -> TensorDictBase:
+        """Gives transitions written beside the decisions (e.g. one-step intra-option transitions) the decisions'
+        ``duration_key``, so that both can share a replay buffer: with ``discount_per="decision"`` it copies their
+        ``steps_key`` there (in place); per step it leaves them as they are (the decisions have no such key).
+
+        Examples:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> one_step = TensorDict(steps_to_next_obs=torch.ones(3, 1, dtype=torch.long), batch_size=[3])
+            >>> SMDPTransitions(0.9, discount_per="decision").with_duration(one_step)["decision_steps"].squeeze(-1)
+            tensor([1, 1, 1])
+            >>> "decision_steps" in SMDPTransitions(0.9).with_duration(one_step.exclude("decision_steps")).keys()
+            False
+        """
+        if self.per_decision:
+            transitions.set(self.keys.duration, transitions.get(self.keys.steps).clone())
+        return transitions
+
     @property
     def num_pending(self) -> int:
         """Number of envs whose current decision is still running."""
@@ -183,12 +201,23 @@ def _per_decision(discount_per: str) -> bool:
 
 
 class _Keys:
-    def __init__(self, decision_key, reward_key, done_key, steps_key, duration_key="decision_steps"):
-        self.decision = unravel_key(decision_key)
-        self.reward = unravel_key(reward_key)
-        self.done = unravel_key(done_key)
-        self.steps = unravel_key(steps_key)
-        self.duration = unravel_key(duration_key)
+    def __init__(self, decision_key, reward_key, done_key, steps_key, duration_key):
+        named = {"decision_key": decision_key, "reward_key": reward_key, "done_key": done_key, "steps_key": steps_key,
+                 "duration_key": duration_key}  # fmt: skip
+        keys = {}
+        for name, key in named.items():
+            try:
+                keys[name] = unravel_key(key)
+            except RuntimeError:
+                raise TypeError(f"smdp: {name} must be a NestedKey (a str or a tuple of str), got {key!r}.") from None
+        for name in ("decision_key", "reward_key", "done_key", "steps_key"):
+            if keys["duration_key"] == keys[name]:
+                raise ValueError(
+                    f"smdp: duration_key and {name} are both {keys[name]!r}; the decision's length would overwrite "
+                    f"the {name[:-4]} entry. Pick another duration_key."
+                )
+        self.decision, self.reward, self.done = keys["decision_key"], keys["reward_key"], keys["done_key"]
+        self.steps, self.duration = keys["steps_key"], keys["duration_key"]
 
 
 class _Carry:
@@ -308,12 +337,6 @@ def _set_like_steps(out: TensorDictBase, key: NestedKey, value: torch.Tensor, ke
     """Writes a per-transition count with the reward's trailing singleton dims (as ``steps_to_next_obs``)."""
     ndim = out.get(keys.reward).ndim
     out.set(key, value.view(value.shape[0], *([1] * (ndim - 1))) if ndim > 1 else value)
-
-
-def _copy_duration(part: TensorDictBase, *, steps_key: NestedKey, duration_key: NestedKey) -> TensorDictBase:
-    """Copies ``steps_key`` to ``duration_key`` (in place): one-step transitions written beside per-decision ones."""
-    part.set(duration_key, part.get(steps_key).clone())
-    return part
 
 
 class SMDPTransform(Transform):
@@ -486,9 +509,8 @@ class SMDPTransform(Transform):
                         steps_key=keys.steps,
                     )
                 )
-            if self.smdp.per_decision:
-                for part in parts[1:]:
-                    _copy_duration(part, steps_key=keys.steps, duration_key=keys.duration)
+            for part in parts[1:]:
+                self.smdp.with_duration(part)
             for i, part in enumerate(parts):
                 part.set(self.marker_key, torch.full(part.shape, i > 0, dtype=torch.bool, device=part.device))
             out = torch.cat(parts, 0)
