@@ -8,9 +8,17 @@ demonstrator's own (``log(1 - eps + eps / A)``), and the gap. CPU, a few minutes
 
     python benchmarks/bench_atari_option_fit.py --game Pooyan --demos 10 --seeds 0 1
 
-``--fits ITERATIONS:G_STEPS:LR:BATCH ...`` fits several DDO settings on the same demonstrations (``BATCH`` a number of
-trajectories per iteration, or ``all``), e.g. the Atari recipe's phase 2 (``500:1:0.001:20``) against more G-steps;
-``--encodings one_hot`` leaves out the ``bytes`` options.
+``--fits ITERATIONS:G_STEPS:LR:BATCH[:CELLS] ...`` fits several DDO settings on the same demonstrations (``BATCH`` a
+number of trajectories per iteration, or ``all``; ``CELLS`` the options' hidden sizes as ``64x64x64``, ``--cells`` when
+left out), e.g. the Atari recipe's phase 2 (``500:1:0.001:20``) against more G-steps; ``--encodings one_hot`` leaves
+out the ``bytes`` options.
+
+``--config <run>/config.yaml`` replays a recipe run's phase 1 instead of the script's own short one: its ``atari``
+settings as the recipe ran them (vector env, checkpoints, Adam), ``--seeds`` its seeds, so the demonstrations are
+the run's own, and the fits can be set against the ``phase2.json`` the run kept:
+
+    python benchmarks/bench_atari_option_fit.py --game Gopher --seeds 0 --encodings one_hot \
+        --config results/atari_cpu_vec_paper_env_8seeds/config.yaml --fits 150:1:0.005:all:32x32 500:1:0.003:20:32x32
 """
 from __future__ import annotations
 
@@ -39,10 +47,15 @@ def main() -> None:
     parser.add_argument("--cells", type=int, nargs="+", default=[64, 64])
     parser.add_argument("--env-semantics", default="project", choices=["project", "paper"])
     parser.add_argument("--encodings", nargs="+", default=["one_hot", "bytes"], choices=["one_hot", "bytes"])
-    parser.add_argument("--fits", nargs="+", default=None, metavar="ITERATIONS:G_STEPS:LR:BATCH",
+    parser.add_argument("--fits", nargs="+", default=None, metavar="ITERATIONS:G_STEPS:LR:BATCH[:CELLS]",
                         help="DDO settings fitted on the same demonstrations (default: the --ddo-* flags, full batch)")
+    parser.add_argument("--config", default=None, metavar="CONFIG_YAML",
+                        help="a recipe run's config.yaml: replay its phase 1 (its atari settings) instead of the "
+                             "script's own (--phase1-episodes, --max-steps, --demos, --env-semantics are then ignored)")
     args = parser.parse_args()
-    fits = [_parse_fit(f) for f in args.fits] if args.fits else [(args.ddo_iterations, args.ddo_m_steps, args.ddo_lr, None)]
+    fits = ([_parse_fit(f, tuple(args.cells)) for f in args.fits] if args.fits
+            else [(args.ddo_iterations, args.ddo_m_steps, args.ddo_lr, None, tuple(args.cells))])  # fmt: skip
+    run_settings = _run_settings(args.config) if args.config else None
     torch.set_num_threads(1)
     rows = []
     for seed in args.seeds:
@@ -52,22 +65,27 @@ def main() -> None:
                     ddo_lr=args.ddo_lr, ddo_m_steps=args.ddo_m_steps, hidden_sizes=(64, 64, 64), lr=1e-3,
                     learning_starts=200, frames_per_batch=64, updates_per_batch=4, hard_update_interval=200,
                     checkpoint_every=0, demo_random_episodes=5)  # fmt: skip
+        if run_settings is not None:
+            base = dict(run_settings)
         agent = _make_agent(args.game, AtariConfig(**base), seed, "actions")
         t0 = time.time()
-        _train_episodes(agent, args.phase1_episodes, os.devnull, AtariConfig(**base))
+        with tempfile.TemporaryDirectory() as d:  # the run's checkpoints every N episodes (resuming restarts there)
+            _train_episodes(agent, base["phase1_episodes"], os.path.join(d, "phase1.partial.pt"), AtariConfig(**base))
         t1 = time.time() - t0
-        for iterations, m_steps, lr, batch in fits:
-            fit = dict(base, ddo_iterations=iterations, ddo_m_steps=m_steps, ddo_lr=lr, ddo_batch_size=batch)
+        for iterations, m_steps, lr, batch, cells in fits:
+            fit = dict(base, ddo_iterations=iterations, ddo_m_steps=m_steps, ddo_lr=lr, ddo_batch_size=batch,
+                       options_num_cells=cells)  # fmt: skip
             for encoding in args.encodings:
-                config = AtariConfig(**fit, option_encoding=encoding)
+                config = AtariConfig(**dict(fit, option_encoding=encoding))
                 with tempfile.TemporaryDirectory() as d:
                     t0 = time.time()
                     _, meta = _phase2(args.game, config, seed, d, agent)
-                label = f"{iterations}:{m_steps}:{lr:g}:{batch or 'all'}"
+                label = f"{iterations}:{m_steps}:{lr:g}:{batch or 'all'}:{'x'.join(map(str, cells))}"
                 rows.append((seed, encoding, label, meta, time.time() - t0, t1))
         _close(agent)
-    print(f"\n{args.game}, {args.demos} greedy demonstrations of <= {args.max_steps} steps after {args.phase1_episodes} "
-          f"DQN episodes; DDO fits as iterations:G-steps:lr:batch; hidden {args.cells}, env {args.env_semantics}\n")
+    source = f"the run of {args.config}" if args.config else f"env {args.env_semantics}"
+    print(f"\n{args.game}, {base['num_demonstrations']} greedy demonstrations of <= {base['demo_max_steps']} steps after "
+          f"{base['phase1_episodes']} DQN episodes ({source}); DDO fits as iterations:G-steps:lr:batch:hidden\n")
     print("| seed | options | DDO fit | K | demo steps | options: log-lik / step | demonstrator's own | gap (nats/step) | "
           "within 0.05 | demo mean return | random policy's | DDO s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -79,15 +97,32 @@ def main() -> None:
               f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | {seconds:.0f} |")
 
 
-def _parse_fit(text: str) -> tuple[int, int, float, int | None]:
+def _parse_fit(text: str, cells: tuple[int, ...]) -> tuple[int, int, float, int | None, tuple[int, ...]]:
     parts = text.split(":")
     try:
-        if len(parts) != 4:
+        if len(parts) not in (4, 5):
             raise ValueError
         batch = None if parts[3] == "all" else int(parts[3])
-        return int(parts[0]), int(parts[1]), float(parts[2]), batch
+        if len(parts) == 5:
+            cells = tuple(int(c) for c in parts[4].split("x"))
+        return int(parts[0]), int(parts[1]), float(parts[2]), batch, cells
     except ValueError:
-        raise SystemExit(f"--fits: expected ITERATIONS:G_STEPS:LR:BATCH (BATCH a number or 'all'), got {text!r}.")
+        raise SystemExit(
+            f"--fits: expected ITERATIONS:G_STEPS:LR:BATCH[:CELLS] (BATCH a number or 'all', CELLS like 64x64), got {text!r}."
+        )
+
+
+def _run_settings(path: str) -> dict:
+    """The ``atari`` settings of a recipe run's ``config.yaml`` (OmegaConf: no code runs on load)."""
+    from omegaconf import OmegaConf
+
+    if not os.path.isfile(path):
+        raise SystemExit(f"--config: no file {path!r} (expected a recipe run's config.yaml).")
+    settings = OmegaConf.to_container(OmegaConf.load(path), resolve=True).get("atari")
+    if not isinstance(settings, dict):
+        raise SystemExit(f"--config: {path!r} has no 'atari' section.")
+    AtariConfig.from_dict(settings)  # names a setting this version does not know
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
 
 
 if __name__ == "__main__":

@@ -43,7 +43,8 @@ def _rows(path):
 
 
 def test_presets_compose():
-    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cpu-vec-rr", "cores16", "cores16-vec", "gpu-hour", "paper"):
+    for preset in ("smoke", "cpu", "cpu-large", "cpu-vec", "cpu-vec-rr", "cores16", "cores16-vec", "gpu-hour", "paper",
+                   "faithful", "faithful-cpu"):  # fmt: skip
         cfg = _config([f"preset={preset}"])
         config = AtariConfig.from_dict(dict(cfg.atari))
         assert cfg.preset_name == preset and config.gamma == 0.85 and config.eps_end == 0.05
@@ -60,6 +61,16 @@ def test_presets_compose():
     assert dict(_config(["preset=cpu-vec-rr"]).atari) == dict(_config(["preset=cpu-vec", *ratio]).atari)
     assert dict(_config(["preset=cpu-vec-rr"]).atari) != dict(_config(["preset=cpu-vec"]).atari)
     assert _config(["preset=cpu-vec-rr"]).seeds == 8
+    # faithful-cpu: cpu-vec's budget with the faithful protocol's settings (its episode cap aside) and a longer
+    # phase 2 of the same cost, nothing else changed
+    faithful = ["atari.env_semantics=paper", "atari.max_episode_steps=200", "atari.discount_per=decision",
+                "atari.num_demonstrations=100", "atari.ddo_iterations=500", "atari.ddo_batch_size=20",
+                "atari.ddo_lr=0.003", "atari.eval_every=150", "atari.eval_episodes=16"]
+    assert dict(_config(["preset=faithful-cpu"]).atari) == dict(_config(["preset=cpu-vec", *faithful]).atari)
+    full, small = _config(["preset=faithful"]).atari, _config(["preset=faithful-cpu"]).atari
+    for name in ("env_semantics", "ram_encoding", "option_encoding", "discount_per", "num_demonstrations"):
+        assert small[name] == full[name], name
+    assert _config(["preset=faithful-cpu"]).seeds == 8
     assert _config(["preset=smoke", "atari.phase1_episodes=7"]).atari.phase1_episodes == 7  # CLI beats preset
     # seeds: a count (0 .. n-1) or a list, e.g. to split a sweep over machines and join the results
     recipe = _recipe()
