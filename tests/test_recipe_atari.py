@@ -485,6 +485,8 @@ def test_phase2_one_hot_options_their_fit_and_the_quality_gate(tmp_path, caplog)
     assert meta["demonstrator_log_likelihood_per_step"] == pytest.approx(math.log(1 - 0.05 + 0.05 / 6))
     assert -math.log(6) - 0.5 < meta["options_log_likelihood_per_step"] < 0
     assert len(meta["random_returns"]) == 2
+    # DDO's usage of each option on the demonstrations: K shares summing to 1, and the table counts those in use
+    assert len(meta["option_usage"]) == config.options_for("Pooyan") and sum(meta["option_usage"]) == pytest.approx(1)
     demo_mean, random_mean = np.mean(meta["demo_returns"]), np.mean(meta["random_returns"])
     assert meta["degenerate_demonstrator"] == bool(demo_mean <= random_mean)
     assert json.loads((tmp_path / "phase2.json").read_text())["options_log_likelihood_per_step"] == pytest.approx(
@@ -492,7 +494,9 @@ def test_phase2_one_hot_options_their_fit_and_the_quality_gate(tmp_path, caplog)
     # the phase-2 table reads it (the recipe's summary.md), laid out as <out>/<game>/seed<s>/
     (tmp_path / "out" / "Pooyan" / "seed0").mkdir(parents=True)
     (tmp_path / "out" / "Pooyan" / "seed0" / "phase2.json").write_text((tmp_path / "phase2.json").read_text())
-    assert "| Pooyan | one_hot | 1 |" in demonstration_fit_markdown(str(tmp_path / "out"))
+    table = demonstration_fit_markdown(str(tmp_path / "out"))
+    in_use = sum(u >= 0.1 / len(meta["option_usage"]) for u in meta["option_usage"])
+    assert "| Pooyan | one_hot | 1 |" in table and table.rstrip().endswith(f"| {in_use:.1f} of 7 |")
     # the gate: logged and recorded when the demonstrations are no better than a random policy, runs on regardless
     with caplog.at_level(logging.WARNING):
         assert _quality_gate("Pooyan", config, 0, [-1e9])["degenerate_demonstrator"] is True

@@ -144,6 +144,8 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         "demonstrator_log_likelihood_per_step": math.log(1.0 - epsilon + epsilon / num_actions),
         "demonstrator_epsilon": epsilon,
         "option_duration": result.history[-1].get("option_duration", float("nan")) if result.history else float("nan"),
+        # per option, the posterior share of the demonstrations' steps it is active (DDO's usage diagnostic)
+        "option_usage": [float(u) for u in result.option_usage],
         **_quality_gate(game, config, seed, demo_returns),
         "seconds": time.time() - t0,
     }

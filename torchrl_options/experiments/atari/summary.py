@@ -408,8 +408,11 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
     """A Markdown table of phase 2 per game, from ``<out_dir>/<game>/seed<s>/phase2.json``: the greedy
     demonstrations' log-likelihood per step under the discovered options next to the epsilon-greedy demonstrator's
     own (the log-probability of its greedy actions, ``log(1 - eps + eps / A)``), how many seeds' options come within
-    ``tolerance`` nats per step of it, and the quality gate (seeds whose demonstrator was degenerate: demonstrations
-    no better than a random policy). Empty when no seed has finished phase 2.
+    ``tolerance`` nats per step of it, the quality gate (seeds whose demonstrator was degenerate: demonstrations
+    no better than a random policy), and how many of the ``K`` options DDO put to use: active on at least ``0.1 / K``
+    of the demonstrations' steps (the posterior usage recorded as ``option_usage``, mean over seeds; DDO's own
+    threshold for an unused option, :func:`~torchrl_options.discovery.option_diagnostics`), "not recorded" for
+    runs made before it was. Empty when no seed has finished phase 2.
 
     Examples:
         >>> import json, os, tempfile
@@ -418,11 +421,12 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
         ...     os.makedirs(os.path.join(out, "Pooyan", f"seed{seed}"))
         ...     info = {"option_encoding": "one_hot", "options_log_likelihood_per_step": ll,
         ...             "demonstrator_log_likelihood_per_step": -0.04, "demo_returns": [3.0, 5.0],
-        ...             "random_returns": [4.5], "degenerate_demonstrator": seed == 1}
+        ...             "random_returns": [4.5], "degenerate_demonstrator": seed == 1, "num_options": 2,
+        ...             "option_usage": [0.99, 0.01] if seed else [0.6, 0.4]}
         ...     with open(os.path.join(out, "Pooyan", f"seed{seed}", "phase2.json"), "w") as f:
         ...         json.dump(info, f)
         >>> print(demonstration_fit_markdown(out).splitlines()[-1])
-        | Pooyan | one_hot | 2 | -0.115 [-0.200, -0.030] | -0.040 | 1 of 2 | 4.00 | 4.50 | 1 of 2 |
+        | Pooyan | one_hot | 2 | -0.115 [-0.200, -0.030] | -0.040 | 1 of 2 | 4.00 | 4.50 | 1 of 2 | 1.5 of 2 |
     """
     rows: dict[str, list[dict]] = defaultdict(list)
     for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "phase2.json"))):
@@ -432,8 +436,9 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
         return ""
     lines = [
         "| game | option encoding | seeds | options: log-likelihood per step (mean [min, max]) | demonstrator's own | "
-        f"seeds within {tolerance} nats | demonstrations' mean return | random policy's | degenerate demonstrators |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"seeds within {tolerance} nats | demonstrations' mean return | random policy's | degenerate demonstrators | "
+        "options in use (mean over seeds) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for game, infos in sorted(rows.items()):
         ll = [i["options_log_likelihood_per_step"] for i in infos]
@@ -447,6 +452,20 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
             f"| {game} | {encodings} | {len(infos)} | {np.mean(ll):.3f} [{min(ll):.3f}, {max(ll):.3f}] | "
             f"{np.mean(own):.3f} | {within} of {len(infos)} | {demo:.2f} | "
             f"{f'{np.mean(rand):.2f}' if rand else 'not measured'} | "
-            f"{sum(bool(i['degenerate_demonstrator']) for i in gated)} of {len(gated)} |"
+            f"{sum(bool(i['degenerate_demonstrator']) for i in gated)} of {len(gated)} | {_options_in_use(infos)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _options_in_use(infos: Sequence[dict]) -> str:
+    """``"<mean> of <K>"``: the options active on at least ``0.1 / K`` of the demonstrations' steps, mean over the
+    seeds that recorded their ``option_usage``; ``"not recorded"`` when none did."""
+    counts, sizes = [], set()
+    for info in infos:
+        usage = info.get("option_usage")
+        if usage:
+            counts.append(sum(u >= 0.1 / len(usage) for u in usage))
+            sizes.add(len(usage))
+    if not counts:
+        return "not recorded"
+    return f"{np.mean(counts):.1f} of {'/'.join(str(k) for k in sorted(sizes))}"
