@@ -87,14 +87,16 @@ def main() -> None:
     print(f"\n{args.game}, {base['num_demonstrations']} greedy demonstrations of <= {base['demo_max_steps']} steps after "
           f"{base['phase1_episodes']} DQN episodes ({source}); DDO fits as iterations:G-steps:lr:batch:hidden\n")
     print("| seed | options | DDO fit | K | demo steps | options: log-lik / step | demonstrator's own | gap (nats/step) | "
-          "within 0.05 | demo mean return | random policy's | DDO s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "within 0.05 | demo mean return | random policy's | options in use | DDO s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for seed, encoding, label, meta, seconds, _ in rows:
         ll, own = meta["options_log_likelihood_per_step"], meta["demonstrator_log_likelihood_per_step"]
         demo = sum(meta["demo_returns"]) / len(meta["demo_returns"])
         rand = sum(meta["random_returns"]) / max(len(meta["random_returns"]), 1)
         print(f"| {seed} | {encoding} | {label} | {meta['num_options']} | {meta['demo_frames']} | {ll:.4f} | {own:.4f} | "
-              f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | {seconds:.0f} |")
+              f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | "
+              f"{sum(u >= 0.1 / len(usage) for u in usage) if (usage := meta.get('option_usage')) else '-'} | "
+              f"{seconds:.0f} |")
 
 
 def _parse_fit(text: str, cells: tuple[int, ...]) -> tuple[int, int, float, int | None, tuple[int, ...]]:
