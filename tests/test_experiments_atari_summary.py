@@ -301,3 +301,55 @@ def test_kept_cpu_vec_paper_env_8_seeds(tmp_path):
     (tmp_path / "four").mkdir()
     four = _kept_rows(os.path.join(ROOT, "results", "atari_cpu_vec_paper_env"), tmp_path / "four")
     assert four and [r for r in rows if int(r["seed"]) < 4] == four
+
+
+def test_kept_faithful_cpu(tmp_path):
+    """The faithful protocol at cpu-vec's budget with a phase 2 that fits (preset faithful-cpu): the figures quoted
+    on docs/experiments/atari_ram.md and the README, recomputed from results/atari_faithful_cpu/."""
+    from torchrl_options.experiments.aggregates import aggregates_markdown
+    from torchrl_options.experiments.atari import greedy_evaluation_markdown, option_usage_markdown
+
+    folder = os.path.join(ROOT, "results", "atari_faithful_cpu")
+    rows = _kept_rows(folder, tmp_path)
+    seeds = sorted({int(r["seed"]) for r in rows})
+    comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
+    assert set(comparisons) == set(GAMES) and all(c.num_seeds == len(seeds) for c in comparisons.values())
+    assert all(c.diff_episodes[1] <= 0 <= c.diff_episodes[2] for c in comparisons.values())  # no verdict either way
+    with open(os.path.join(ROOT, "docs", "experiments", "atari_ram.md")) as f:
+        page = f.read()
+    with open(os.path.join(ROOT, "README.md")) as f:
+        readme = f.read()
+    section = page[page.index("### The faithful protocol with options that fit"):]
+    for game, c in comparisons.items():
+        mean, low, high = c.diff_episodes
+        row = next(x for x in section.splitlines() if x.startswith(f"| {game} |"))
+        assert f"| {mean:+.1f} [{low:+.1f}, {high:+.1f}] |" in row, game
+    aggregates = aggregates_markdown(atari_aggregates(rows, phase1_episodes=150, pairs=[("H1", "A")]), score_name="x")
+    line = next(x for x in aggregates.splitlines() if x.startswith("| H1 vs A |"))
+    improvement = line.split(" | ")[1]
+    assert improvement in section and improvement in readme
+    # every seed of every game: the options within 0.05 nats per step of their demonstrator (the run's own record)
+    assert _seeds_within(folder) == {game: f"{len(seeds)} of {len(seeds)}" for game in GAMES}
+    # the greedy evaluations and the options' usage, as the page quotes them
+    greedy = greedy_evaluation_markdown(folder, [("H1", "A")], phase1_episodes=150)
+    usage = option_usage_markdown(folder)
+    for table in (greedy, usage):
+        game_rows = [x for x in table.splitlines() if x.startswith(tuple(f"| {g} |" for g in GAMES))]
+        assert len(game_rows) == len(GAMES)
+        for x in game_rows:
+            assert x in section, x
+    # the same phase 1 as the reference run (which ran cpu-vec's phase 2) on every game and seed, and the same A
+    # episode for episode on the seeds both ran on today's code (the reference's seeds 0-3 are the 4-seed run's, on
+    # the code of 2026-12-05: 5 of their 20 A cells part from it late in phase 3)
+    (tmp_path / "reference").mkdir()
+    reference = _kept_rows(os.path.join(ROOT, "results", "atari_cpu_vec_paper_env_8seeds"), tmp_path / "reference")
+
+    def actions_only(table, keep):
+        return sorted((r["setting"], int(r["seed"]), int(r["episode"]), float(r["return"]), int(r["frames"]))
+                      for r in table if r["condition"] == "A" and int(r["seed"]) in seeds and keep(r))  # fmt: skip
+
+    phase1 = actions_only(rows, lambda r: int(r["episode"]) < 150)
+    assert phase1 == actions_only(reference, lambda r: int(r["episode"]) < 150)
+    assert len(phase1) == len(GAMES) * len(seeds) * 150
+    later = actions_only(rows, lambda r: int(r["seed"]) >= 4)
+    assert later == actions_only(reference, lambda r: int(r["seed"]) >= 4) and len(later) == len(GAMES) * 4 * 450

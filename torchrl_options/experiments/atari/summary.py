@@ -459,7 +459,8 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
 
 def _options_in_use(infos: Sequence[dict]) -> str:
     """``"<mean> of <K>"``: the options active on at least ``0.1 / K`` of the demonstrations' steps, mean over the
-    seeds that recorded their ``option_usage``; ``"not recorded"`` when none did."""
+    seeds that recorded their ``option_usage`` (``"... (n seeds)"`` when not all did); ``"not recorded"`` when none
+    did."""
     counts, sizes = [], set()
     for info in infos:
         usage = info.get("option_usage")
@@ -468,4 +469,5 @@ def _options_in_use(infos: Sequence[dict]) -> str:
             sizes.add(len(usage))
     if not counts:
         return "not recorded"
-    return f"{np.mean(counts):.1f} of {'/'.join(str(k) for k in sorted(sizes))}"
+    text = f"{np.mean(counts):.1f} of {'/'.join(str(k) for k in sorted(sizes))}"
+    return text if len(counts) == len(infos) else f"{text} ({len(counts)} seeds)"
