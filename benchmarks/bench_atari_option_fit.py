@@ -29,6 +29,7 @@ import time
 
 import torch
 
+from torchrl_options.discovery import options_in_use
 from torchrl_options.experiments.atari import AtariConfig
 from torchrl_options.experiments.atari.pipeline import _phase2, _train_episodes
 from torchrl_options.experiments.atari.utils import _close, _make_agent
@@ -57,16 +58,22 @@ def main() -> None:
             else [(args.ddo_iterations, args.ddo_m_steps, args.ddo_lr, None, tuple(args.cells))])  # fmt: skip
     run_settings = _run_settings(args.config) if args.config else None
     torch.set_num_threads(1)
+    # the run's own settings with --config, else a short phase 1 of the script's own
+    base = dict(run_settings) if run_settings is not None else dict(
+        env_semantics=args.env_semantics, max_episode_steps=args.max_steps, noop_max=5,
+        phase1_episodes=args.phase1_episodes, num_demonstrations=args.demos, demo_max_steps=args.max_steps,
+        options_num_cells=tuple(args.cells), ddo_iterations=args.ddo_iterations, ddo_batch_size=None,
+        ddo_lr=args.ddo_lr, ddo_m_steps=args.ddo_m_steps, hidden_sizes=(64, 64, 64), lr=1e-3,
+        learning_starts=200, frames_per_batch=64, updates_per_batch=4, hard_update_interval=200,
+        checkpoint_every=0, demo_random_episodes=5)  # fmt: skip
+    for iterations, m_steps, lr, batch, cells in fits:  # every fit's settings checked before minutes of phase 1
+        try:
+            AtariConfig(**dict(base, ddo_iterations=iterations, ddo_m_steps=m_steps, ddo_lr=lr, ddo_batch_size=batch,
+                               options_num_cells=cells))  # fmt: skip
+        except (TypeError, ValueError) as err:
+            raise SystemExit(f"--fits: {err}") from None
     rows = []
     for seed in args.seeds:
-        base = dict(env_semantics=args.env_semantics, max_episode_steps=args.max_steps, noop_max=5,
-                    phase1_episodes=args.phase1_episodes, num_demonstrations=args.demos, demo_max_steps=args.max_steps,
-                    options_num_cells=tuple(args.cells), ddo_iterations=args.ddo_iterations, ddo_batch_size=None,
-                    ddo_lr=args.ddo_lr, ddo_m_steps=args.ddo_m_steps, hidden_sizes=(64, 64, 64), lr=1e-3,
-                    learning_starts=200, frames_per_batch=64, updates_per_batch=4, hard_update_interval=200,
-                    checkpoint_every=0, demo_random_episodes=5)  # fmt: skip
-        if run_settings is not None:
-            base = dict(run_settings)
         agent = _make_agent(args.game, AtariConfig(**base), seed, "actions")
         t0 = time.time()
         with tempfile.TemporaryDirectory() as d:  # the run's checkpoints every N episodes (resuming restarts there)
@@ -95,7 +102,7 @@ def main() -> None:
         rand = sum(meta["random_returns"]) / max(len(meta["random_returns"]), 1)
         print(f"| {seed} | {encoding} | {label} | {meta['num_options']} | {meta['demo_frames']} | {ll:.4f} | {own:.4f} | "
               f"{own - ll:.4f} | {'yes' if ll >= own - 0.05 else 'no'} | {demo:.1f} | {rand:.1f} | "
-              f"{sum(u >= 0.1 / len(usage) for u in usage) if (usage := meta.get('option_usage')) else '-'} | "
+              f"{options_in_use(meta['option_usage']) if meta.get('option_usage') else '-'} | "
               f"{seconds:.0f} |")
 
 
@@ -120,10 +127,17 @@ def _run_settings(path: str) -> dict:
 
     if not os.path.isfile(path):
         raise SystemExit(f"--config: no file {path!r} (expected a recipe run's config.yaml).")
-    settings = OmegaConf.to_container(OmegaConf.load(path), resolve=True).get("atari")
+    try:
+        config = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except Exception as err:  # YAML syntax, interpolation
+        raise SystemExit(f"--config: {path!r} is not a readable config.yaml ({type(err).__name__}: {err}).") from None
+    settings = config.get("atari") if isinstance(config, dict) else None
     if not isinstance(settings, dict):
-        raise SystemExit(f"--config: {path!r} has no 'atari' section.")
-    AtariConfig.from_dict(settings)  # names a setting this version does not know
+        raise SystemExit(f"--config: {path!r} has no 'atari' section (expected a recipe run's config.yaml).")
+    try:
+        AtariConfig.from_dict(settings)  # names a setting this version does not know, or a bad value
+    except (TypeError, ValueError) as err:
+        raise SystemExit(f"--config: {path!r}: {err}") from None
     return {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
 
 

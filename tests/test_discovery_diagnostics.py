@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchrl_options import discover_options
-from torchrl_options.discovery import option_diagnostics, restart_disagreement
+from torchrl_options.discovery import option_diagnostics, options_in_use, restart_disagreement, UNUSED_SHARE
 from torchrl_options.testing import planted_corridor_demonstrations
 
 
@@ -34,6 +34,15 @@ def test_an_option_that_explains_nothing_is_reported_unused():
     assert d.unused == [2]
     assert d.duplicates == [(0, 1)]
     assert any("less than" in w for w in d.warnings) and any("duplicates" in w for w in d.warnings)
+
+
+def test_options_in_use_is_the_complement_of_unused():
+    for pi in ([0.9, 0.1], [0.9, 0.9, 1e-6], [0.5, 0.5, 0.5], [0.9, 0.5]):
+        d = option_diagnostics(_log_probs(pi, [0.3] * len(pi)))
+        assert options_in_use(d.usage) == len(pi) - len(d.unused)
+    # the threshold is UNUSED_SHARE / K, inclusive
+    assert options_in_use([1 - UNUSED_SHARE / 2, UNUSED_SHARE / 2]) == 2
+    assert options_in_use([1 - UNUSED_SHARE / 4, UNUSED_SHARE / 4]) == 1
 
 
 def test_options_differing_only_in_termination_are_not_duplicates():

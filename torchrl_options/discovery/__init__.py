@@ -13,7 +13,13 @@ from torchrl_options.discovery.discover import (
     fit_ddo,
     PAPER_SETTINGS,
 )
-from torchrl_options.discovery.diagnostics import option_diagnostics, OptionDiagnostics, restart_disagreement
+from torchrl_options.discovery.diagnostics import (
+    option_diagnostics,
+    OptionDiagnostics,
+    options_in_use,
+    restart_disagreement,
+    UNUSED_SHARE,
+)
 from torchrl_options.discovery.initialization import (
     change_points,
     clone_from_labels,
@@ -41,6 +47,7 @@ __all__ = [
     "kmeans",
     "load_options",
     "option_diagnostics",
+    "options_in_use",
     "OptionDiagnostics",
     "PAPER_SETTINGS",
     "pretrain_on_clusters",

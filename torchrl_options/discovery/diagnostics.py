@@ -14,9 +14,27 @@ import torch
 
 from torchrl_options.inference import forward_backward
 
-__all__ = ["OptionDiagnostics", "option_diagnostics", "restart_disagreement"]
+__all__ = ["OptionDiagnostics", "option_diagnostics", "options_in_use", "restart_disagreement", "UNUSED_SHARE"]
 
 logger = logging.getLogger(__name__)
+
+UNUSED_SHARE = 0.1
+"""An option active on less than ``UNUSED_SHARE / K`` of the demonstrations' steps is reported unused (the default
+``min_usage`` of :func:`option_diagnostics`)."""
+
+
+def options_in_use(usage: Sequence[float]) -> int:
+    """How many of K options are in use: active on at least ``UNUSED_SHARE / K`` of the steps, by their usage shares
+    (:attr:`DiscoveryResult.option_usage <torchrl_options.discovery.DiscoveryResult>`, :class:`OptionDiagnostics`'s
+    ``usage``). The complement of :func:`option_diagnostics`'s ``unused`` with its default ``min_usage``.
+
+    Examples:
+        >>> options_in_use([0.6, 0.38, 0.02])
+        2
+        >>> options_in_use([])
+        0
+    """
+    return sum(u >= UNUSED_SHARE / len(usage) for u in usage)
 
 
 @dataclass
@@ -54,7 +72,7 @@ def option_diagnostics(
 
     Keyword Args:
         min_usage (float, optional): an option active at less than this share of the steps is reported unused.
-            Defaults to ``0.1 / K``.
+            Defaults to ``UNUSED_SHARE / K`` (``0.1 / K``).
         policy_tol (float): see :class:`OptionDiagnostics`. Defaults to 0.05 nats.
         termination_tol (float): see :class:`OptionDiagnostics`. Defaults to 0.05.
 
@@ -77,7 +95,7 @@ def option_diagnostics(
     log_pi = log_probs["log_pi"].detach()
     K = log_pi.shape[-1]
     if min_usage is None:
-        min_usage = 0.1 / K
+        min_usage = UNUSED_SHARE / K
     with torch.no_grad():
         fb = forward_backward(
             log_pi, log_probs["log_term"].detach(), log_probs["log_cont"].detach(), log_probs["log_eta"].detach(),

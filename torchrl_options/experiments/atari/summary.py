@@ -411,7 +411,7 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
     ``tolerance`` nats per step of it, the quality gate (seeds whose demonstrator was degenerate: demonstrations
     no better than a random policy), and how many of the ``K`` options DDO put to use: active on at least ``0.1 / K``
     of the demonstrations' steps (the posterior usage recorded as ``option_usage``, mean over seeds; DDO's own
-    threshold for an unused option, :func:`~torchrl_options.discovery.option_diagnostics`), "not recorded" for
+    threshold for an unused option, :func:`~torchrl_options.discovery.options_in_use`), "not recorded" for
     runs made before it was. Empty when no seed has finished phase 2.
 
     Examples:
@@ -461,12 +461,10 @@ def _options_in_use(infos: Sequence[dict]) -> str:
     """``"<mean> of <K>"``: the options active on at least ``0.1 / K`` of the demonstrations' steps, mean over the
     seeds that recorded their ``option_usage`` (``"... (n seeds)"`` when not all did); ``"not recorded"`` when none
     did."""
-    counts, sizes = [], set()
-    for info in infos:
-        usage = info.get("option_usage")
-        if usage:
-            counts.append(sum(u >= 0.1 / len(usage) for u in usage))
-            sizes.add(len(usage))
+    from torchrl_options.discovery import options_in_use
+
+    recorded = [info["option_usage"] for info in infos if info.get("option_usage")]
+    counts, sizes = [options_in_use(usage) for usage in recorded], {len(usage) for usage in recorded}
     if not counts:
         return "not recorded"
     text = f"{np.mean(counts):.1f} of {'/'.join(str(k) for k in sorted(sizes))}"
