@@ -63,6 +63,7 @@ API_MODULES = [
     "torchrl_options.experiments",
     "torchrl_options.experiments.atari",
     "torchrl_options.checkpoints",
+    "torchrl_options.checks",
 ]
 
 

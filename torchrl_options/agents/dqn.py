@@ -108,7 +108,7 @@ class DQNHyperParameters:
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.discovery._validation import check_int
+        from torchrl_options.checks import check_int
 
         if self.discount_per not in ("step", "decision"):
             raise ValueError(f"discount_per must be one of ('step', 'decision'), got {self.discount_per!r}.")
@@ -182,7 +182,7 @@ class OptionsDQNConfig(DQNHyperParameters):
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.discovery._validation import check_int
+        from torchrl_options.checks import check_int
 
         super().__post_init__()
         choices = {"mode": ("actions", "options", "both"), "target_update": ("hard", "soft"),
@@ -363,7 +363,7 @@ class OptionsDQN:
         if not callable(env_factory):
             raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
         if num_options is not None:
-            from torchrl_options.discovery._validation import check_int
+            from torchrl_options.checks import check_int
 
             check_int(num_options, "num_options", minimum=1)
         if options is not None and not isinstance(options, TensorDictModuleBase):

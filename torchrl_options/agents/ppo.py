@@ -103,7 +103,7 @@ class OptionsPPOConfig:
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.discovery._validation import check_int
+        from torchrl_options.checks import check_int
 
         choices = {"mode": ("actions", "options", "both"), "loss_critic_type": ("l1", "l2", "smooth_l1")}
         for name, allowed in choices.items():
@@ -195,7 +195,7 @@ class OptionsPPO:
         if not callable(env_factory):
             raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
         if num_options is not None:
-            from torchrl_options.discovery._validation import check_int
+            from torchrl_options.checks import check_int
 
             check_int(num_options, "num_options", minimum=1)
         if options is not None and not isinstance(options, TensorDictModuleBase):

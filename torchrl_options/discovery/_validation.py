@@ -9,7 +9,6 @@ range) and one forward of the options module on a single step: cheap next to one
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,6 +16,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
+
+from torchrl_options.checks import check_int, check_positive_number
 
 __all__ = [
     "check_trajectories",
@@ -32,38 +33,6 @@ _MASK = ("collector", "mask")
 def _steps(td: TensorDictBase) -> int:
     # TensorDict.numel() is never below 1 (a [0] tensordict has numel() == 1): count from the batch size
     return int(math.prod(td.batch_size))
-
-
-def check_int(value: Any, name: str, *, minimum: int | None = None, allow_none: bool = False) -> None:
-    """Refuses a non-int (``TypeError``; ``bool`` and ``2.0`` are not ints) or one below ``minimum`` (``ValueError``).
-
-    Examples:
-        >>> check_int(3, "num_options", minimum=1)
-        >>> check_int(2.5, "num_options", minimum=1)
-        Traceback (most recent call last):
-        ...
-        TypeError: num_options must be an int, got 2.5 (float).
-    """
-    if value is None and allow_none:
-        return
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name} must be an int{' or None' if allow_none else ''}, got {value!r} ({type(value).__name__}).")
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value}.")
-
-
-def check_positive_number(value: Any, name: str) -> None:
-    """Refuses anything but a finite number above 0 (``ValueError``; ``bool`` and strings are not numbers).
-
-    Examples:
-        >>> check_positive_number(0.03, "lr")
-        >>> check_positive_number(float("nan"), "lr")
-        Traceback (most recent call last):
-        ...
-        ValueError: lr must be a positive finite number, got nan.
-    """
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < float("inf"):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}.")
 
 
 def check_trajectories(trajectories: Any, *, trajectory_key: NestedKey | None = None, mask_key: NestedKey = _MASK) -> None:

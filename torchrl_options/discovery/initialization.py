@@ -16,7 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from torchrl_options.discovery._validation import check_int, check_positive_number
+from torchrl_options.checks import check_int, check_positive_number
 from torchrl_options.objectives.ddo import option_log_probs
 
 __all__ = ["change_points", "clone_from_labels", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]

@@ -15,7 +15,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from torchrl_options.discovery._validation import check_int, check_options_module, check_step_data
+from torchrl_options.checks import check_int
+from torchrl_options.discovery._validation import check_options_module, check_step_data
 from torchrl_options.discovery import as_trajectory_batch, DiscoveryResult
 from torchrl_options.inference import forward_backward, most_likely_options, viterbi
 from torchrl_options.objectives import DDOLoss

@@ -121,7 +121,7 @@ class AtariConfig(DQNHyperParameters):
     _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {"repeat_action_probability": (0.0, 1.0)}
 
     def __post_init__(self) -> None:
-        from torchrl_options.discovery._validation import check_int
+        from torchrl_options.checks import check_int
         from torchrl_options.discovery.discover import _check_m_steps
 
         super().__post_init__()  # the DQN settings
