@@ -173,8 +173,9 @@ def numba_first_call_times() -> tuple[str, str]:
 
 def numba_breakdown(B, T, K, reps, others=()):
     """Median process CPU times [ms] of the numba backend's parts at (B, T, K), float32, 1 thread, interleaved:
-    the compiled forward-backward kernel alone (outputs allocated once), the same with its outputs allocated per
-    call, ``numba_forward_backward`` (the Python preparation around the kernel), ``forward_backward`` without
+    the float32 kernel alone (what float32 inputs run; outputs allocated once) writing the marginals and the
+    gradients or the marginals only, the float64 kernel alone (what takes the rows the float32 one cannot certify,
+    and float64 inputs; outputs allocated once), the same with its outputs allocated per call, ``numba_forward_backward`` (the Python preparation around the kernel), ``forward_backward`` without
     autograd, the gradient kernel alone, ``numba_expectation_gradient`` (its outputs allocated per call), and
     forward + ``torch.autograd.grad`` with respect to all four inputs (what the main table times); for each path
     in ``others`` (another version's kernels, see :func:`other_kernels`) its forward-backward kernel alone and its
@@ -203,6 +204,14 @@ def numba_breakdown(B, T, K, reps, others=()):
         outs = [torch.empty(B, T, K) for _ in range(3)]
         k.fb_rows(*nps, lengths, termn, np.empty(B), *(o.numpy() for o in outs), np.zeros(B, bool), *floors, 0, B)
 
+    tiny = np.float32(nf._tiny32(K))
+    flat = [x.reshape(B, T * K).numpy() for x in d]
+    kept32 = [np.empty((B, T * K), np.float32) for _ in range(7)]
+    st32 = np.zeros(B, np.int8)
+
+    def kernel32(grads):
+        k.fb32_rows(*flat, T, K, lengths, termn, np.empty(B), *kept32, grads, st32, tiny, 0, B)
+
     def grad_kernel():
         k.grad_rows(g.numpy(), u.numpy(), v.numpy(), w.numpy(), lengths, termn, *kept, 0, B)
 
@@ -215,6 +224,8 @@ def numba_breakdown(B, T, K, reps, others=()):
             forward_backward(*d, validate=False, backend="numba")
 
     parts = {
+        "float32 kernel, gradients (outputs kept)": lambda: kernel32(True),
+        "float32 kernel, marginals only": lambda: kernel32(False),
         "fb kernel (outputs kept)": kernel,
         "fb kernel (outputs allocated)": kernel_alloc,
         "numba_forward_backward": lambda: nf.numba_forward_backward(*d, mask, term),
@@ -283,7 +294,7 @@ def main(argv=None):
             print(f"\n{B}, {T}, {K} (memory floor {floor * 1e3:.2f} ms); {load()}")
             others = [b[len("numba@"):] for b in (args.backends or "").split(",") if b.startswith("numba@")]
             for name, ms in numba_breakdown(B, T, K, args.reps, others).items():
-                print(f"  {name:<32} {ms:8.2f} ms {ms / 1e3 / floor:6.1f}x floor")
+                print(f"  {name:<42} {ms:8.2f} ms {ms / 1e3 / floor:6.1f}x floor")
         return
     for threads in [int(n) for n in args.threads.split(",")]:
         torch.set_num_threads(threads)

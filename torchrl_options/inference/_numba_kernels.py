@@ -1,6 +1,8 @@
 """The Numba kernels of :mod:`._numba_fb` (imported only when Numba is installed).
 
-Everything is float64 inside, whatever the inputs' dtype. ``fastmath`` allows reassociation and contraction (so
+:func:`fb32_rows` is the float32 kernel (float32 inputs, float32 arithmetic, explicit 8-lane vectors of
+:mod:`._simd`); :func:`fb_rows` the float64 one, which also takes the rows the float32 kernel cannot certify.
+In :func:`fb_rows` everything is float64 inside, whatever the inputs' dtype. ``fastmath`` allows reassociation and contraction (so
 the loops over K vectorise) and assumes no NaN (the inputs are validated, padding is zeroed), but not ``ninf``:
 ``-inf`` log-probabilities must stay exact zeros; and not ``arcp``: ``u`` is a true quotient, so that it is
 exactly 1 where a single option is possible.
@@ -14,6 +16,27 @@ import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
+
+from torchrl_options.inference._simd import (
+    nan_or_posinf,
+    vadd,
+    vdiv,
+    vexp,
+    vfma,
+    vhmax,
+    vhmin,
+    vload,
+    vload_n,
+    vmax,
+    vmin,
+    vmul,
+    vsplat,
+    vstore,
+    vstore_n,
+    vsub,
+    vsum,
+    vsum2,
+)
 
 _FASTMATH = {"nnan", "contract", "reassoc", "nsz"}
 
@@ -350,3 +373,364 @@ def grad_rows(g, u, v, w, lengths, terminal, g_pi, g_term, g_cont, g_eta, b0, b1
             last = lengths[b] - 1
             for h in range(K):
                 g_term[b, last, h] = gb * 0.0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The float32 kernel
+# ---------------------------------------------------------------------------------------------------------------
+
+_W = 8  # lanes of a vector of :mod:`._simd`
+_Z32 = np.float32(0.0)
+_ONE32 = np.float32(1.0)
+_NINF32 = np.float32(-np.inf)
+_INF32 = np.float32(np.inf)
+
+
+@_jit(inline="always")
+def _ld(x, i, n):
+    """``x[i:i + 8]``; when fewer than 8 options are left (``n < 8``) the missing lanes hold ``-inf``."""
+    if n >= _W:
+        return vload(x, i)
+    return vload_n(x, i, n, _NINF32)
+
+
+@_jit(inline="always")
+def _st(x, i, v, n):
+    """``x[i:i + min(n, 8)] = v``."""
+    if n >= _W:
+        vstore(x, i, v)
+    else:
+        vstore_n(x, i, v, n)
+
+
+@_jit(inline="always")
+def _start32(leb, K, NC, KP, X, padv):
+    """``alpha_0 = eta_0`` normalised, into the message slot of ``X``'s step 0. Returns its log-normaliser, the
+    validity sum of the ``log_eta`` entries read and the smallest entry before normalisation (lane-wise)."""
+    mx = vsplat(_NINF32)
+    for c in range(NC):
+        mx = vmax(mx, _ld(leb, c * _W, K - c * _W))
+    me = vhmax(mx)
+    if me == _NINF32:
+        me = _Z32
+    acc = vsplat(_Z32)
+    chk = vsplat(_Z32)
+    for c in range(NC):
+        x = _ld(leb, c * _W, K - c * _W)
+        chk = vadd(chk, x)
+        e = vexp(vsub(x, vsplat(me)))
+        vstore(X, 3 * KP + c * _W, e)
+        acc = vadd(acc, e)
+    z = vsum(acc)
+    rz = vsplat(_ONE32 / z)
+    mn = vsplat(_INF32)
+    for c in range(NC):
+        i = 3 * KP + c * _W
+        e = vload(X, i)
+        mn = vmin(mn, vmax(e, vload(padv, c * _W)))
+        vstore(X, i, vmul(e, rz))
+    return np.float64(me) + math.log(np.float64(z)), chk, mn
+
+
+@_jit(inline="always")
+def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, pad):
+    """Forward step ``t -> t + 1`` for K <= 8 (one vector per step), the message ``a`` kept in a register: the
+    step's factors (stored in ``X`` for the backward pass) and the new normalised message."""
+    j = t * 4 * _W
+    o = t * K
+    lpv = _ld(lpb, o, K)
+    m = vhmax(lpv)  # the step's shift: its largest log pi
+    if m == _NINF32:
+        m = _Z32
+    p = vsub(lpv, vsplat(m))
+    x1 = vadd(p, _ld(lcb, o, K))
+    x2 = vadd(p, _ld(ltb, o, K))
+    y = _ld(leb, o + K, K)
+    chk = vadd(chk, vadd(vadd(x1, x2), y))
+    fx = vmax(fx, vmax(vmax(x1, x2), y))
+    d = vexp(x1)  # stay: pi (1 - psi)
+    cc = vexp(x2)  # terminate: pi psi
+    e = vexp(y)  # start: eta_{t+1}
+    vstore(X, j, d)
+    vstore(X, j + _W, cc)
+    vstore(X, j + 2 * _W, e)
+    s, q = vsum2(vmul(a, cc), vmul(a, d))
+    z = s * vsum(e) + q
+    rz = _ONE32 / z
+    RZ[t] = rz
+    QS[t] = s * rz
+    prod *= np.float64(z)
+    llv += np.float64(m)
+    if prod < 1e-280:
+        llv += math.log(prod)
+        prod = 1.0
+    n = vfma(vsplat(s), e, vmul(a, d))
+    mn = vmin(mn, vmax(n, pad))
+    a = vmul(n, vsplat(rz))
+    vstore(X, j + 7 * _W, a)
+    return a, chk, mn, fx, prod, llv
+
+
+@_jit(inline="always")
+def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv, padv):
+    """Forward step ``t -> t + 1``, any K (``NC`` vectors per step), the message in ``X``."""
+    j = t * 4 * KP
+    o = t * K
+    mx = vsplat(_NINF32)
+    for c in range(NC):
+        mx = vmax(mx, _ld(lpb, o + c * _W, K - c * _W))
+    m = vhmax(mx)
+    if m == _NINF32:
+        m = _Z32
+    mv = vsplat(m)
+    ea = vsplat(_Z32)
+    sa = vsplat(_Z32)
+    qa = vsplat(_Z32)
+    for c in range(NC):
+        n = K - c * _W
+        k = j + c * _W
+        p = vsub(_ld(lpb, o + c * _W, n), mv)
+        x1 = vadd(p, _ld(lcb, o + c * _W, n))
+        x2 = vadd(p, _ld(ltb, o + c * _W, n))
+        y = _ld(leb, o + K + c * _W, n)
+        chk = vadd(chk, vadd(vadd(x1, x2), y))
+        fx = vmax(fx, vmax(vmax(x1, x2), y))
+        d = vexp(x1)
+        cc = vexp(x2)
+        e = vexp(y)
+        vstore(X, k, d)
+        vstore(X, k + KP, cc)
+        vstore(X, k + 2 * KP, e)
+        a = vload(X, k + 3 * KP)
+        ea = vadd(ea, e)
+        sa = vfma(a, cc, sa)
+        qa = vfma(a, d, qa)
+    s = vsum(sa)
+    z = s * vsum(ea) + vsum(qa)
+    rz = _ONE32 / z
+    RZ[t] = rz
+    QS[t] = s * rz
+    prod *= np.float64(z)
+    llv += np.float64(m)
+    if prod < 1e-280:
+        llv += math.log(prod)
+        prod = 1.0
+    sv = vsplat(s)
+    rzv = vsplat(rz)
+    for c in range(NC):
+        k = j + c * _W
+        n = vfma(sv, vload(X, k + 2 * KP), vmul(vload(X, k + 3 * KP), vload(X, k)))
+        mn = vmin(mn, vmax(n, vload(padv, c * _W)))
+        vstore(X, k + 7 * KP, vmul(n, rzv))
+    return chk, mn, fx, prod, llv
+
+
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
+def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, prod, llv, tiny,
+              ub, vb, wb, gpb, gtb, gcb, geb, grads, bv, wn, padv, ll_out, status):  # fmt: skip
+    """Row ``b`` after its forward pass: the end factor, the backward pass fused with the marginals (and, with
+    ``grads``, the four gradients for an upstream gradient of 1), zeros on padding, and the row's status."""
+    S4 = 4 * KP
+    zerov = vsplat(_Z32)
+    last = L - 1
+    o = last * K
+    j = last * S4
+    # the end factor: pi at the last step (times psi there if the row is terminal)
+    mx = vsplat(_NINF32)
+    for c in range(NC):
+        n = K - c * _W
+        p = _ld(lpb, o + c * _W, n)
+        q = _ld(ltb, o + c * _W, n)
+        chk = vadd(chk, vadd(vadd(p, q), _ld(lcb, o + c * _W, n)))
+        if term:
+            p = vadd(p, q)
+        mx = vmax(mx, p)
+    m = vhmax(mx)
+    if m == _NINF32:
+        m = _Z32
+    qa = zerov
+    for c in range(NC):
+        n = K - c * _W
+        p = _ld(lpb, o + c * _W, n)
+        if term:
+            p = vadd(p, _ld(ltb, o + c * _W, n))
+        d = vexp(vsub(p, vsplat(m)))
+        vstore(X, j + c * _W, d)
+        qa = vfma(vload(X, j + 3 * KP + c * _W), d, qa)
+    z = vsum(qa)
+    ll_out[b] = llv + np.float64(m) + math.log(prod * np.float64(z))
+    if nan_or_posinf(vsum(chk)):  # a NaN or +inf among the entries read (-inf + inf is NaN too)
+        status[b] |= 2
+    for i in range(L * K, T * K):
+        ub[i] = _Z32
+        vb[i] = _Z32
+        wb[i] = _Z32
+    for i in range(last * K, L * K):
+        wb[i] = _Z32
+    if grads:
+        for i in range(L * K, T * K):
+            gpb[i] = _Z32
+            gtb[i] = _Z32
+            gcb[i] = _Z32
+            geb[i] = _Z32
+    # beta_{L-1} = f / z; every beta is scaled by its step's forward normaliser (so sum_h alpha_t beta_t = 1 in
+    # exact arithmetic) and S_t = sum_h alpha_t beta_t, computed, normalises the marginals
+    rz = vsplat(_ONE32 / z)
+    acc = zerov
+    bsv = zerov
+    for c in range(NC):
+        x = vmul(vload(X, j + c * _W), rz)
+        vstore(bv, c * _W, x)
+        vstore(wn, c * _W, zerov)
+        acc = vfma(vload(X, j + 3 * KP + c * _W), x, acc)
+        bsv = vadd(bsv, x)
+    S = vsum(acc)
+    bs = vsum(bsv)
+    # the certificate's backward half: before scaling, each new entry C g + D beta must be at least
+    # tiny * sum(beta) * (C + D) (see fb32_rows), lane-wise minimum over the steps of the difference
+    mnb = vsplat(_INF32)
+    if NC == 1:  # K <= 8: beta in a register
+        x = vload(bv, 0)
+        wprev = zerov
+        for t in range(L - 2, -1, -1):
+            j = t * S4
+            o = t * K
+            rS = _ONE32 / S
+            e = vload(X, j + 2 * _W)
+            d = vload(X, j)
+            a0 = vload(X, j + 3 * _W)
+            # transition t's marginals: u_{t+1} = alpha beta / S, v_{t+1} = (s E / z) beta / S,
+            # w_t = (alpha_t D / z) beta / S
+            uu = vdiv(vmul(vload(X, j + 7 * _W), x), vsplat(S))
+            vv = vmul(vsplat(QS[t] * rS), vmul(e, x))
+            ww = vmul(vmul(vmul(a0, d), vsplat(RZ[t] * rS)), x)
+            _st(ub, o + K, uu, K)
+            _st(vb, o + K, vv, K)
+            _st(wb, o, ww, K)
+            if grads:
+                _st(gpb, o + K, uu, K)
+                _st(geb, o + K, vv, K)
+                _st(gcb, o, ww, K)
+                _st(gtb, o + K, vsub(uu, wprev), K)
+                wprev = ww
+            gv = vsplat(vsum(vmul(e, x)))
+            cc = vload(X, j + _W)
+            nb = vfma(cc, gv, vmul(d, x))
+            mnb = vmin(mnb, vsub(nb, vmul(vsplat(tiny * bs), vadd(cc, d))))
+            x = vmul(nb, vsplat(RZ[t]))
+            S, bs = vsum2(vmul(a0, x), x)
+        vstore(bv, 0, x)
+        vstore(wn, 0, wprev)
+    else:
+        for t in range(L - 2, -1, -1):
+            j = t * S4
+            o = t * K
+            rS = _ONE32 / S
+            Sv = vsplat(S)
+            qs = vsplat(QS[t] * rS)
+            rzs = vsplat(RZ[t] * rS)
+            ga = zerov
+            for c in range(NC):
+                n = K - c * _W
+                k = j + c * _W
+                x = vload(bv, c * _W)
+                e = vload(X, k + 2 * KP)
+                uu = vdiv(vmul(vload(X, k + 7 * KP), x), Sv)
+                vv = vmul(qs, vmul(e, x))
+                ww = vmul(vmul(vmul(vload(X, k + 3 * KP), vload(X, k)), rzs), x)
+                _st(ub, o + K + c * _W, uu, n)
+                _st(vb, o + K + c * _W, vv, n)
+                _st(wb, o + c * _W, ww, n)
+                if grads:
+                    _st(gpb, o + K + c * _W, uu, n)
+                    _st(geb, o + K + c * _W, vv, n)
+                    _st(gcb, o + c * _W, ww, n)
+                    _st(gtb, o + K + c * _W, vsub(uu, vload(wn, c * _W)), n)
+                    vstore(wn, c * _W, ww)
+                ga = vfma(e, x, ga)
+            gv = vsplat(vsum(ga))
+            rz = vsplat(RZ[t])
+            thr = vsplat(tiny * bs)
+            acc = zerov
+            bsv = zerov
+            for c in range(NC):
+                k = j + c * _W
+                cc = vload(X, k + KP)
+                d = vload(X, k)
+                nb = vfma(cc, gv, vmul(d, vload(bv, c * _W)))
+                mnb = vmin(mnb, vsub(nb, vmul(thr, vadd(cc, d))))
+                x = vmul(nb, rz)
+                vstore(bv, c * _W, x)
+                acc = vfma(vload(X, k + 3 * KP), x, acc)
+                bsv = vadd(bsv, x)
+            S = vsum(acc)
+            bs = vsum(bsv)
+    Sv = vsplat(S)
+    for c in range(NC):
+        n = K - c * _W
+        uu = vdiv(vmul(vload(X, 3 * KP + c * _W), vload(bv, c * _W)), Sv)
+        _st(ub, c * _W, uu, n)
+        _st(vb, c * _W, uu, n)
+        if grads:
+            _st(gpb, c * _W, uu, n)
+            _st(geb, c * _W, uu, n)
+            _st(gtb, c * _W, vsub(uu, vload(wn, c * _W)), n)
+    if grads:
+        for i in range(last * K, L * K):
+            gcb[i] = _Z32
+            if not term:
+                gtb[i] = _Z32
+    if not (vhmin(mn) >= tiny and z >= tiny and vhmax(fx) <= _Z32 and vhmin(mnb) >= _Z32):
+        status[b] |= 1
+
+
+@_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
+def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, gc, ge, grads, status, tiny,
+              b0, b1):  # fmt: skip
+    """Forward-backward of rows ``b0 .. b1 - 1`` in float32 (see :mod:`._numba_fb`). Inputs and outputs are
+    ``[B, T * K]`` float32 (C-contiguous); only each row's valid prefix of the inputs is read. Writes ``ll_out``
+    [B] (float64), ``u``, ``v``, ``w`` and, with ``grads``, ``gp``, ``gt``, ``gc``, ``ge`` (the Expectation-Gradient
+    for an upstream gradient of 1: ``u``, ``u - w`` where log_term enters the likelihood else 0, ``w``, ``v``),
+    zeros on padding. ``status[b]`` (the caller passes 0): bit 0 set if the row could not be certified (the
+    caller recomputes it), bit 1 if a valid entry read is NaN or +inf.
+
+    Float32 drops products below 1.2e-38 (and exponentials of log-factors below -87, 1.6e-38); with every factor at
+    most 1 (checked: log-factors after the shift at most 0) and the forward messages normalised, each dropped term
+    is at most 1.6e-38 (times ``sum(beta)`` in the backward pass), so an entry made of ``K + 1`` terms loses at most
+    ``(K + 1) 1.6e-38``. The certificate, with ``tiny = (K + 1) 1.6e-38 / 1e-8``: every forward entry before
+    normalisation (``(C . alpha) E + D alpha``, and ``eta_0`` relative to its largest entry) is at least ``tiny``,
+    so that it carries float32's relative precision (what it lost is below 1e-8 of it); every backward entry before
+    scaling, ``(E . beta) C + D beta``, is at least ``tiny * sum(beta) * (C + D)``, so that what was lost from
+    ``beta`` is below 1e-8 of each entry it enters (an entry of beta is small only through its own step's factors
+    ``C + D``, i.e. its option's probability of the action; those entries carry absolute errors below
+    ``1e-37 sum(beta)``, far below what float32 resolves in ``u``, ``v``, ``w``); and the last normaliser (the
+    likelihood of the end) is at least ``tiny``. Exact zeros (``-inf`` log-probabilities) stay exact zeros.
+    Rows that fail go to :func:`fb_rows`."""
+    NC = (K + _W - 1) // _W
+    KP = NC * _W
+    X = np.zeros((T + 1) * 4 * KP, np.float32)  # per step t: D, C, E (transition t) and the message alpha_t
+    RZ = np.empty(T, np.float32)  # 1 / z_t
+    QS = np.empty(T, np.float32)  # s_t / z_t
+    bv = np.zeros(KP, np.float32)
+    wn = np.zeros(KP, np.float32)
+    padv = np.zeros(KP, np.float32)  # +inf on the lanes beyond K (excluded from the minima), 0 elsewhere
+    for h in range(K, KP):
+        padv[h] = _INF32
+    for b in range(b0, b1):
+        L = lengths[b]
+        lpb, ltb, lcb, leb = lp[b], lt[b], lc[b], le[b]
+        llv, chk, mn = _start32(leb, K, NC, KP, X, padv)
+        fx = vsplat(_NINF32)
+        prod = 1.0
+        if NC == 1:
+            pad0 = vload(padv, 0)
+            a = vload(X, 3 * _W)
+            for t in range(L - 1):
+                a, chk, mn, fx, prod, llv = _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod,
+                                                        llv, pad0)  # fmt: skip
+        else:
+            for t in range(L - 1):
+                chk, mn, fx, prod, llv = _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
+                                                 padv)  # fmt: skip
+        _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, terminal[b], X, RZ, QS, chk, mn, fx, prod, llv, tiny, u[b],
+                  v[b], w[b], gp[b], gt[b], gc[b], ge[b], grads, bv, wn, padv, ll_out, status)  # fmt: skip

@@ -17,6 +17,7 @@ __all__ = [
     "BACKENDS",
     "ForwardBackwardOutput",
     "check_forward_backward_inputs",
+    "check_forward_backward_values",
     "forward_backward",
     "numba_available",
     "resolve_backend",
@@ -53,8 +54,14 @@ def check_forward_backward_inputs(
     log_eta: Tensor,
     mask: Tensor | None = None,
     terminal: bool | Tensor = False,
+    *,
+    values: bool = True,
 ) -> tuple[Tensor, Tensor]:
     """Validates the inputs of :func:`forward_backward` and returns ``(mask, terminal)`` as tensors.
+
+    ``values=False`` skips the scan of the four ``[B, T, K]`` tensors for NaN / +inf (the float32 compiled kernel
+    checks the values it reads itself, and :func:`forward_backward` then calls :func:`check_forward_backward_values`
+    only for the rows it reports).
 
     Raises:
         ValueError: naming the argument, for a wrong type, dtype, shape or device, an empty batch, a mask that is
@@ -118,15 +125,28 @@ def check_forward_backward_inputs(
         terminal = torch.full((B,), terminal, dtype=torch.bool, device=log_pi.device)
     else:
         raise ValueError(f"terminal must be a bool or a bool tensor of shape [B], got {type(terminal).__name__}.")
+    if values:
+        check_forward_backward_values(log_pi, log_term, log_cont, log_eta, mask)
+    return mask, terminal
+
+
+def check_forward_backward_values(log_pi: Tensor, log_term: Tensor, log_cont: Tensor, log_eta: Tensor, mask: Tensor):
+    """Raises a ``ValueError`` naming the tensor and the entry ``(b, t, k)`` if a valid entry (``mask``, ``[B, T]``
+    bool) of a log-probability is NaN or +inf.
+
+    Examples:
+        >>> import torch
+        >>> x = torch.zeros(1, 2, 3)
+        >>> check_forward_backward_values(x, x, x, x, torch.ones(1, 2, dtype=torch.bool))
+    """
     valid = mask.unsqueeze(-1)
-    for name, x in zip(_NAMES, tensors):
+    for name, x in zip(_NAMES, (log_pi, log_term, log_cont, log_eta)):
         bad = (torch.isnan(x) | (x == float("inf"))) & valid
         if bad.any():
             where = tuple(bad.nonzero()[0].tolist())
             raise ValueError(
                 f"{name} contains NaN or +inf at (b, t, k) = {where}: log-probabilities must be finite or -inf."
             )
-    return mask, terminal
 
 
 def _describe(x) -> str:
@@ -248,21 +268,46 @@ def _recompute_flagged_rows(outputs, bad, log_pi, log_term, log_cont, log_eta, m
     ll, u, v, w = outputs
     if bad.any():
         rows = bad.nonzero().flatten()
-        ref = _forward_backward_reference(
-            log_pi[rows], log_term[rows], log_cont[rows], log_eta[rows], mask[rows], terminal[rows], row_ids=rows
-        )
+        m = mask[rows]
+        # the reference reads every entry: its padding must be zeros (the compiled kernels never read it)
+        xs = [_zero_padding(x[rows], m) for x in (log_pi, log_term, log_cont, log_eta)]
+        ref = _forward_backward_reference(*xs, m, terminal[rows], row_ids=rows)
         for out, r in zip((ll, u, v, w), ref):
             out[rows] = r
     return ll, u, v, w
 
 
-def _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
-    """The compiled CPU kernel of :mod:`._numba_fb`, with the rows it flags recomputed by the reference (which also
-    names the rows of zero likelihood and raises)."""
-    from torchrl_options.inference._numba_fb import numba_forward_backward
+def _zero_padding(x: Tensor, mask: Tensor) -> Tensor:
+    """``x`` with its padding (``~mask``) replaced by zeros, so that nothing (not even NaN) leaks into the valid
+    entries of a backend that reads every entry."""
+    if mask.all():
+        return x
+    return torch.where(mask.unsqueeze(-1), x, torch.zeros((), dtype=x.dtype, device=x.device))
 
-    ll, u, v, w, bad = numba_forward_backward(log_pi, log_term, log_cont, log_eta, mask, terminal)
-    return _recompute_flagged_rows((ll, u, v, w), bad, log_pi, log_term, log_cont, log_eta, mask, terminal)
+
+def _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal, grads=False):
+    """The compiled CPU kernels of :mod:`._numba_fb`, with the rows they flag recomputed by the reference (which
+    also names the rows of zero likelihood and raises). Returns ``(ll, u, v, w)`` and the four gradients of
+    ``sum(log P)`` (``None`` unless ``grads`` and float32 inputs). A float32 row with a NaN or +inf among its valid
+    entries raises the ``ValueError`` of :func:`check_forward_backward_values`."""
+    from torchrl_options.inference._numba_fb import numba_e_step
+
+    res = numba_e_step(log_pi, log_term, log_cont, log_eta, mask, terminal, grads=grads)
+    if res.invalid.any():
+        # the error names the entry: scan the rows the kernel reported (the error path only)
+        check_forward_backward_values(log_pi, log_term, log_cont, log_eta, mask & res.invalid.unsqueeze(1))
+        # not reached unless the kernel's check sum overflowed on huge finite values: recompute those rows
+        res = res._replace(bad=res.bad | res.invalid)
+    out = (res.log_likelihood, res.u, res.v, res.w)
+    out = _recompute_flagged_rows(out, res.bad, log_pi, log_term, log_cont, log_eta, mask, terminal)
+    grads_out = res.grads
+    if grads_out is not None and res.bad.any():  # the reference's rows: their gradients from their marginals
+        rows = res.bad.nonzero().flatten()
+        u, v, w = (x[rows] for x in out[1:])
+        tw = _term_weight(mask[rows], terminal[rows]).unsqueeze(-1)
+        for g, val in zip(grads_out, (u, torch.where(tw, u - w, 0.0), w, v)):
+            g[rows] = val
+    return out, grads_out
 
 
 def _triton_backend(log_pi, log_term, log_cont, log_eta, mask, terminal):
@@ -353,8 +398,14 @@ class _ForwardBackward(torch.autograd.Function):
     d/dlog_term = u - w (u at a terminal row's last step)."""
 
     @staticmethod
-    def forward(ctx, log_pi, log_term, log_cont, log_eta, mask, terminal, backend):
-        ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
+    def forward(ctx, log_pi, log_term, log_cont, log_eta, mask, terminal, backend, grads):
+        ctx.grads = None
+        if backend == "numba":
+            # the float32 kernel writes the gradients for an upstream gradient of 1 in its backward pass when one
+            # will be needed (``grads``), so the gradient pass below reads nothing back
+            (ll, u, v, w), ctx.grads = _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal, grads)
+        else:
+            ll, u, v, w = _BACKENDS[backend](log_pi, log_term, log_cont, log_eta, mask, terminal)
         ctx.save_for_backward(u, v, w, mask, terminal)
         ctx.mark_non_differentiable(u, v, w)
         # u, v, w take no gradient: without this, autograd would fill three [B, T, K] tensors of zeros for them
@@ -367,20 +418,30 @@ class _ForwardBackward(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_ll, grad_u, grad_v, grad_w):
         if grad_ll is None:  # not materialised: no gradient reached log_likelihood
-            return None, None, None, None, None, None, None
+            return None, None, None, None, None, None, None, None
+        grads, ctx.grads = ctx.grads, None  # used once: a second backward (retain_graph) recomputes them
+        if grads is not None:
+            # g * u, g * (u - w), g * w, g * v: the kernel wrote the values for g = 1 (u itself, u - w in float32,
+            # ...), so scaling them gives exactly the expression below; for g = 1 they are returned as they are
+            g = grad_ll.detach().to(grads[0].dtype)
+            if not bool((g == 1).all()):
+                g = g.view(-1, 1, 1)
+                for x in grads:
+                    x.mul_(g)
+            return (*grads, None, None, None, None)
         u, v, w, mask, terminal = ctx.saved_tensors
         if ctx.backend == "numba":
             from torchrl_options.inference._numba_fb import numba_expectation_gradient
 
-            return (*numba_expectation_gradient(grad_ll, u, v, w, mask, terminal), None, None, None)
+            return (*numba_expectation_gradient(grad_ll, u, v, w, mask, terminal), None, None, None, None)
         term_weight = _term_weight(mask, terminal)
         if ctx.backend == "triton":
             from torchrl_options.inference._triton_fb import triton_expectation_gradient
 
-            return (*triton_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None)
+            return (*triton_expectation_gradient(grad_ll, u, v, w, term_weight), None, None, None, None)
         g = grad_ll.view(-1, 1, 1)
         grad_term = torch.where(term_weight.unsqueeze(-1), u - w, 0.0)
-        return g * u, g * grad_term, g * w, g * v, None, None, None
+        return g * u, g * grad_term, g * w, g * v, None, None, None, None
 
 
 def forward_backward(
@@ -474,7 +535,8 @@ def forward_backward(
     if not isinstance(backend, str) or backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}.")
     if validate:
-        mask, terminal = check_forward_backward_inputs(log_pi, log_term, log_cont, log_eta, mask, terminal)
+        # shapes, dtypes, devices and the mask first (cheap); the values' scan after the backend is known
+        mask, terminal = check_forward_backward_inputs(log_pi, log_term, log_cont, log_eta, mask, terminal, values=False)
     else:
         B, T, _ = log_pi.shape
         if mask is None:
@@ -482,13 +544,14 @@ def forward_backward(
         if not isinstance(terminal, Tensor):
             terminal = torch.full((B,), bool(terminal), dtype=torch.bool, device=log_pi.device)
         terminal = terminal.expand(B)
-    if not mask.all():
-        # Padding may hold anything (NaN included): replace it so nothing leaks into the valid entries.
-        valid = mask.unsqueeze(-1)
-        log_pi, log_term, log_cont, log_eta = (
-            torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))
-            for x in (log_pi, log_term, log_cont, log_eta)
-        )
     backend = resolve_backend(backend, log_pi)
-    ll, u, v, w = _ForwardBackward.apply(log_pi, log_term, log_cont, log_eta, mask, terminal, backend)
+    if validate and not (backend == "numba" and log_pi.dtype == torch.float32):
+        # the float32 compiled kernel checks the values it reads itself (and raises the same error)
+        check_forward_backward_values(log_pi, log_term, log_cont, log_eta, mask)
+    if backend != "numba":
+        # Padding may hold anything (NaN included): replace it so nothing leaks into the valid entries (the
+        # compiled CPU kernels read only each row's valid prefix).
+        log_pi, log_term, log_cont, log_eta = (_zero_padding(x, mask) for x in (log_pi, log_term, log_cont, log_eta))
+    grads = torch.is_grad_enabled() and any(x.requires_grad for x in (log_pi, log_term, log_cont, log_eta))
+    ll, u, v, w = _ForwardBackward.apply(log_pi, log_term, log_cont, log_eta, mask, terminal, backend, grads)
     return ForwardBackwardOutput(log_likelihood=ll, u=u, v=v, w=w)

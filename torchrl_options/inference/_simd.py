@@ -1,0 +1,323 @@
+"""Eight-lane float32 vectors for the Numba kernels (imported only when Numba is installed).
+
+Numba vectorises loops whose trip count it can see, but the E-step's inner loops run over the K options of one
+time step: a handful of iterations, too few for the compiler's vector loops (at K = 8 it ran them one element at a
+time). This module gives the kernels an explicit vector type, ``f32x8`` (an LLVM ``<8 x float>``, a ``ymm``
+register on x86, two ``q`` registers on ARM), and the few operations they need, each a Numba intrinsic that emits
+plain LLVM IR (no target-specific intrinsics, so it compiles wherever Numba does):
+
+* memory: :func:`vload`, :func:`vstore` (8 lanes of a 1-D float32 array at an element offset), :func:`vload_n`,
+  :func:`vstore_n` (only the first ``n`` lanes touched: the tail of a row whose K is not a multiple of 8);
+* arithmetic: :func:`vsplat`, :func:`vadd`, :func:`vsub`, :func:`vmul`, :func:`vdiv`, :func:`vfma`,
+  :func:`vmax`, :func:`vmin` (IEEE, no fast-math flags: the kernels choose the order of every operation);
+* reductions over the 8 lanes: :func:`vsum`, :func:`vhmax`, :func:`vhmin` (a fixed shuffle tree);
+* :func:`vexp`: ``exp(x)`` for ``x <= 0`` to about 1 ulp (Cody-Waite reduction, a degree-6 minimax polynomial,
+  the power of two from the exponent bits), exactly 0 below -87 and for ``-inf``.
+
+Offsets are element offsets into 1-D C-contiguous float32 arrays; there are no bounds checks (the callers'
+loops stay inside their rows).
+"""
+from __future__ import annotations
+
+import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic, models, register_model
+
+__all__ = [
+    "f32x8",
+    "nan_or_posinf",
+    "vadd",
+    "vdiv",
+    "vexp",
+    "vfma",
+    "vhmax",
+    "vhmin",
+    "vload",
+    "vload_n",
+    "vmax",
+    "vmin",
+    "vmul",
+    "vsplat",
+    "vstore",
+    "vstore_n",
+    "vsub",
+    "vsum",
+    "vsum2",
+]
+
+LANES = 8
+_V = ir.VectorType(ir.FloatType(), LANES)
+_I32 = ir.IntType(32)
+_VI = ir.VectorType(_I32, LANES)
+
+
+class F32x8Type(types.Type):
+    """The Numba type of an 8-lane float32 vector."""
+
+    def __init__(self):
+        super().__init__(name="f32x8")
+
+
+f32x8 = F32x8Type()
+
+
+@register_model(F32x8Type)
+class _F32x8Model(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _V)
+
+
+def _elem_ptr(context, builder, aryty, ary, idx):
+    data = context.make_array(aryty)(context, builder, ary).data
+    return builder.gep(data, [idx], inbounds=True)
+
+
+def _call(builder, name, ret, args):
+    fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ret, [a.type for a in args]), name)
+    return builder.call(fn, args)
+
+
+def _splat(builder, x, vty=_V):
+    v = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(v, ir.Constant(vty, ir.Undefined), ir.Constant(_VI, [0] * LANES))
+
+
+def _const(v):
+    return ir.Constant(_V, [float(np.float32(v))] * LANES)
+
+
+def _is_f32_array(arr):
+    return isinstance(arr, types.Array) and arr.dtype == types.float32 and arr.ndim == 1
+
+
+@intrinsic
+def vload(typingctx, arr, i):
+    """``arr[i:i + 8]`` as a vector."""
+    if not (_is_f32_array(arr) and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = builder.bitcast(_elem_ptr(context, builder, sig.args[0], args[0], args[1]), _V.as_pointer())
+        return builder.load(ptr, align=4)
+
+    return f32x8(arr, i), codegen
+
+
+@intrinsic
+def vload_n(typingctx, arr, i, n, fill):
+    """Lanes ``j < n`` from ``arr[i + j]``, the others ``fill``; no memory beyond ``arr[i + n - 1]`` is read."""
+    if not (_is_f32_array(arr) and isinstance(i, types.Integer) and isinstance(n, types.Integer)):
+        return None
+    if fill != types.float32:
+        return None
+
+    def codegen(context, builder, sig, args):
+        ary, idx, cnt, fillv = args
+        out = cgutils.alloca_once_value(builder, _splat(builder, fillv))
+        for j in range(LANES):
+            with builder.if_then(builder.icmp_signed(">", cnt, ir.Constant(cnt.type, j))):
+                p = _elem_ptr(context, builder, sig.args[0], ary, builder.add(idx, ir.Constant(idx.type, j)))
+                v = builder.insert_element(builder.load(out), builder.load(p), ir.Constant(_I32, j))
+                builder.store(v, out)
+        return builder.load(out)
+
+    return f32x8(arr, i, n, fill), codegen
+
+
+@intrinsic
+def vstore(typingctx, arr, i, v):
+    """``arr[i:i + 8] = v``."""
+    if not (_is_f32_array(arr) and isinstance(i, types.Integer) and v == f32x8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ptr = builder.bitcast(_elem_ptr(context, builder, sig.args[0], args[0], args[1]), _V.as_pointer())
+        builder.store(args[2], ptr, align=4)
+        return context.get_dummy_value()
+
+    return types.none(arr, i, v), codegen
+
+
+@intrinsic
+def vstore_n(typingctx, arr, i, v, n):
+    """``arr[i + j] = v[j]`` for the lanes ``j < n`` only."""
+    if not (_is_f32_array(arr) and isinstance(i, types.Integer) and v == f32x8 and isinstance(n, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        ary, idx, vec, cnt = args
+        for j in range(LANES):
+            with builder.if_then(builder.icmp_signed(">", cnt, ir.Constant(cnt.type, j))):
+                p = _elem_ptr(context, builder, sig.args[0], ary, builder.add(idx, ir.Constant(idx.type, j)))
+                builder.store(builder.extract_element(vec, ir.Constant(_I32, j)), p)
+        return context.get_dummy_value()
+
+    return types.none(arr, i, v, n), codegen
+
+
+@intrinsic
+def nan_or_posinf(typingctx, x):
+    """Whether the float32 ``x`` is NaN or +inf, from its bits (so that no fast-math assumption can fold it)."""
+    if x != types.float32:
+        return None
+
+    def codegen(context, builder, sig, args):
+        bits = builder.bitcast(args[0], _I32)
+        mag = builder.and_(bits, ir.Constant(_I32, 0x7FFFFFFF))
+        nan = builder.icmp_signed(">", mag, ir.Constant(_I32, 0x7F800000))
+        posinf = builder.icmp_signed("==", bits, ir.Constant(_I32, 0x7F800000))
+        return builder.or_(nan, posinf)
+
+    return types.boolean(x), codegen
+
+
+@intrinsic
+def vsplat(typingctx, x):
+    """``x`` (a float32) in every lane."""
+    if x != types.float32:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, args[0])
+
+    return f32x8(x), codegen
+
+
+def _binary(op: str, doc: str):
+    @intrinsic
+    def fn(typingctx, a, b):
+        if a != f32x8 or b != f32x8:
+            return None
+
+        def codegen(context, builder, sig, args):
+            return getattr(builder, op)(args[0], args[1])
+
+        return f32x8(a, b), codegen
+
+    fn.__doc__ = doc
+    return fn
+
+
+vadd = _binary("fadd", "Lane-wise ``a + b``.")
+vsub = _binary("fsub", "Lane-wise ``a - b``.")
+vmul = _binary("fmul", "Lane-wise ``a * b``.")
+vdiv = _binary("fdiv", "Lane-wise ``a / b`` (a true quotient).")
+
+
+def _select(pred: str, doc: str):
+    @intrinsic
+    def fn(typingctx, a, b):
+        if a != f32x8 or b != f32x8:
+            return None
+
+        def codegen(context, builder, sig, args):
+            return builder.select(builder.fcmp_ordered(pred, args[0], args[1]), args[0], args[1])
+
+        return f32x8(a, b), codegen
+
+    fn.__doc__ = doc
+    return fn
+
+
+vmax = _select(">", "Lane-wise ``a if a > b else b``.")
+vmin = _select("<", "Lane-wise ``a if a < b else b``.")
+
+
+@intrinsic
+def vfma(typingctx, a, b, c):
+    """Lane-wise ``a * b + c``, rounded once."""
+    if not (a == b == c == f32x8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _call(builder, "llvm.fma.v8f32", _V, list(args))
+
+    return f32x8(a, b, c), codegen
+
+
+def _reduce(kind: str, doc: str):
+    @intrinsic
+    def fn(typingctx, v):
+        if v != f32x8:
+            return None
+
+        def codegen(context, builder, sig, args):
+            x = args[0]
+            undef = ir.Constant(_V, ir.Undefined)
+            for half in (4, 2, 1):
+                y = builder.shuffle_vector(x, undef, ir.Constant(_VI, [(j + half) % LANES for j in range(LANES)]))
+                if kind == "sum":
+                    x = builder.fadd(x, y)
+                else:
+                    x = builder.select(builder.fcmp_ordered(">" if kind == "max" else "<", x, y), x, y)
+            return builder.extract_element(x, ir.Constant(_I32, 0))
+
+        return types.float32(v), codegen
+
+    fn.__doc__ = doc
+    return fn
+
+
+vsum = _reduce("sum", "The sum of the 8 lanes (a fixed pairwise order).")
+
+
+@intrinsic
+def vsum2(typingctx, a, b):
+    """``(vsum(a), vsum(b))`` with shared shuffles (each the sum of its 8 lanes, a fixed pairwise order)."""
+    if a != f32x8 or b != f32x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        a, b = args
+        lo = builder.shuffle_vector(a, b, ir.Constant(_VI, [0, 1, 2, 3, 8, 9, 10, 11]))
+        hi = builder.shuffle_vector(a, b, ir.Constant(_VI, [4, 5, 6, 7, 12, 13, 14, 15]))
+        x = builder.fadd(lo, hi)  # lanes 0-3: a's half sums, 4-7: b's
+        undef = ir.Constant(_V, ir.Undefined)
+        for half in (2, 1):
+            y = builder.shuffle_vector(x, undef, ir.Constant(_VI, [(j // 4) * 4 + (j + half) % 4 for j in range(LANES)]))
+            x = builder.fadd(x, y)
+        ra = builder.extract_element(x, ir.Constant(_I32, 0))
+        rb = builder.extract_element(x, ir.Constant(_I32, 4))
+        return context.make_tuple(builder, sig.return_type, [ra, rb])
+
+    return types.UniTuple(types.float32, 2)(a, b), codegen
+vhmax = _reduce("max", "The largest of the 8 lanes.")
+vhmin = _reduce("min", "The smallest of the 8 lanes.")
+
+# exp on [-ln2/2, ln2/2]: minimax polynomial of degree 6 for the relative error (2e-9 before float32 rounding)
+_EXP_POLY = (1.0, 1.000000032194708, 0.49999994217020166, 0.16666431177443375, 0.04166799994767056,
+             0.008374160681625022, 0.0013843777357477529)  # fmt: skip
+_LOG2E = 1.4426950408889634
+_LN2_HI = 0.693359375  # exact in float32 (Cephes' split of ln 2)
+_LN2_LO = -2.12194440e-4
+_EXP_MIN = -87.0  # exp(-87) = 1.6e-38, just above float32's smallest normal number
+
+
+@intrinsic
+def vexp(typingctx, x):
+    """Lane-wise ``exp(x)`` for ``x <= 0`` (about 1 ulp); exactly 0 below -87, ``-inf`` included."""
+    if x != f32x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        (x,) = args
+
+        def fma(a, b, c):
+            return _call(builder, "llvm.fma.v8f32", _V, [a, b, c])
+
+        lo = _const(_EXP_MIN)
+        ok = builder.fcmp_ordered(">=", x, lo)
+        xc = builder.select(ok, x, lo)
+        k = _call(builder, "llvm.floor.v8f32", _V, [fma(xc, _const(_LOG2E), _const(0.5))])
+        r = fma(k, _const(-_LN2_HI), xc)
+        r = fma(k, _const(-_LN2_LO), r)
+        p = _const(_EXP_POLY[-1])
+        for q in _EXP_POLY[-2::-1]:
+            p = fma(p, r, _const(q))
+        bits = builder.shl(builder.add(builder.fptosi(k, _VI), ir.Constant(_VI, [127] * LANES)),
+                           ir.Constant(_VI, [23] * LANES))  # fmt: skip
+        y = builder.fmul(p, builder.bitcast(bits, _V))
+        return builder.select(ok, y, ir.Constant(_V, [0.0] * LANES))
+
+    return f32x8(x), codegen
