@@ -18,8 +18,9 @@ the inputs of ``bench_forward_backward.make_inputs`` (softmax policies, sigmoid 
   option at every step, the transition's ``logsumexp`` of its switch and stay terms), and ``torch.autograd.grad``
   of the summed log-likelihood with respect to the four inputs.
 
-Method: one warm-up call of each, then ``--reps`` rounds in each of which every contender runs once, in turn
-(interleaved, so that load from other processes hits all alike). Medians over the rounds of the wall time and of
+Method: one warm-up call of each, then ``--reps`` rounds in each of which every contender runs once, in an order
+shuffled per round (interleaved, so that load from other processes hits all alike, and no contender always
+follows the floor's passes, which leave the caches full of their own arrays). Medians over the rounds of the wall time and of
 the process CPU time (with one thread and other jobs on the machine, CPU time is the closer estimate of an idle
 machine's wall time; the ratios are given for both). ``x floor`` = ours / floor, ``naive / ours`` = naive / ours,
 each from this run's medians.
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import random
 import statistics
 import time
 
@@ -145,8 +147,11 @@ def main(argv=None):
         wall = {n: [] for n in fns}
         cpu = {n: [] for n in fns}
         load0 = os.getloadavg()[0]
+        rng = random.Random(K)
         for _ in range(args.reps):
-            for name, f in fns.items():
+            order = list(fns.items())
+            rng.shuffle(order)
+            for name, f in order:
                 t0, c0 = time.perf_counter(), time.process_time()
                 f()
                 wall[name].append(time.perf_counter() - t0)

@@ -258,3 +258,20 @@ def test_without_the_float32_kernel_float32_takes_the_float64_kernel(monkeypatch
     assert_close_outputs(fast, out, torch.float32)
     torch.testing.assert_close(grads[0], out.u, rtol=0, atol=0)
     torch.testing.assert_close(grads[3], out.v, rtol=0, atol=0)
+
+
+def test_output_buffers_stay_bounded():
+    """The recycled memory never exceeds its bound; arrays still held are never dropped or handed out twice."""
+    from torchrl_options.inference._numba_fb import _OutputBuffers
+
+    pool = _OutputBuffers(max_bytes=10 * 4 * 100)
+    held = [pool.empty((10, 10), np.float32) for _ in range(3)]  # 1200 bytes: the third is not kept
+    assert len({t.data_ptr() for t in held}) == 3
+    assert pool._bytes <= pool.max_bytes
+    ptr = held[0].data_ptr()
+    del held[0]
+    again = pool.empty((10, 10), np.float32)
+    assert again.data_ptr() == ptr
+    other = pool.empty((5, 5), np.float32)  # another shape: room is made from free arrays only
+    assert pool._bytes <= pool.max_bytes
+    assert len({again.data_ptr(), held[0].data_ptr(), held[1].data_ptr(), other.data_ptr()}) == 4

@@ -143,33 +143,30 @@ class _OutputBuffers:
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
-        self._arrays: list[np.ndarray] = []
+        self._arrays: dict[tuple, list[np.ndarray]] = {}  # by (shape, dtype)
         self._bytes = 0
         self._lock = threading.Lock()
 
     def empty(self, shape: tuple[int, ...], dtype) -> Tensor:
-        dtype = np.dtype(dtype)
+        key = (shape, np.dtype(dtype))
         with self._lock:
-            for arr in self._arrays:
-                # references: the list, ``arr`` here, getrefcount's argument
-                if arr.shape == shape and arr.dtype == dtype and sys.getrefcount(arr) <= 3:
+            kept = self._arrays.setdefault(key, [])
+            for arr in kept:
+                if sys.getrefcount(arr) <= 3:  # the list, ``arr`` here, getrefcount's argument: nobody else
                     return torch.from_numpy(arr)
-            arr = np.empty(shape, dtype)
+            arr = np.empty(shape, key[1])
+            if self._bytes + arr.nbytes > self.max_bytes:  # make room: drop the free arrays of other shapes
+                for arrays in self._arrays.values():
+                    arrays[:] = [a for a in arrays if sys.getrefcount(a) > 3]
+                self._bytes = sum(a.nbytes for arrays in self._arrays.values() for a in arrays)
             if self._bytes + arr.nbytes <= self.max_bytes:
-                self._arrays.append(arr)
+                kept.append(arr)
                 self._bytes += arr.nbytes
-            elif self._arrays:  # make room: drop arrays nobody holds (of other shapes) before giving up
-                keep = [a for a in self._arrays if sys.getrefcount(a) > 3]
-                self._arrays = keep
-                self._bytes = sum(a.nbytes for a in keep)
-                if self._bytes + arr.nbytes <= self.max_bytes:
-                    self._arrays.append(arr)
-                    self._bytes += arr.nbytes
             return torch.from_numpy(arr)
 
     def clear(self) -> None:
         with self._lock:
-            self._arrays = []
+            self._arrays = {}
             self._bytes = 0
 
 
@@ -218,6 +215,9 @@ def numba_forward_backward(
     return res.log_likelihood, res.u, res.v, res.w, res.bad | res.invalid
 
 
+_NO_ROWS = torch.zeros(1, dtype=torch.bool)  # expanded to [B]: no row flagged (read-only)
+
+
 class NumbaEStep(NamedTuple):
     """What :func:`numba_e_step` returns (see there)."""
 
@@ -253,7 +253,9 @@ def numba_e_step(
     """
     k = _kernels()
     B, T, K = log_pi.shape
-    lengths = mask.sum(1).to(torch.int64).contiguous()
+    # (NumPy for the small bookkeeping: each PyTorch call costs microseconds, and there are a dozen)
+    lengths_np = mask.numpy().sum(1, dtype=np.int64)
+    lengths = torch.from_numpy(lengths_np)
     term = terminal.to(torch.bool).contiguous()
     if log_pi.dtype != torch.float32:
         ll, u, v, w, bad = _fb64(k, log_pi, log_term, log_cont, log_eta, lengths, term)
@@ -261,25 +263,31 @@ def numba_e_step(
     xs = [x.detach().contiguous().view(B, T * K).numpy() for x in (log_pi, log_term, log_cont, log_eta)]
     outs = [_BUFFERS.empty((B, T, K), np.float32) for _ in range(7 if grads else 3)]  # all written by the kernel
     u, v, w = outs[:3]
-    g = outs[3:] if grads else [torch.empty(1, 0)] * 4
-    ll = torch.empty(B, dtype=torch.float64)
-    status = torch.zeros(B, dtype=torch.int8)
-    flat = [x.view(x.shape[0], -1).numpy() for x in (*outs[:3], *g)]
-    args = (*xs, T, K, lengths.numpy(), term.numpy(), ll.numpy(), *flat, grads, status.numpy(),
-            np.float32(_tiny32(K)))  # fmt: skip
-    if not _run_float32_kernel(k, args, lengths.numpy()):  # it did not compile here: the float64 kernel instead
+    flat = [x.view(B, T * K).numpy() for x in outs]
+    if not grads:
+        flat += [np.empty((1, 0), np.float32)] * 4
+    ll = np.empty(B)
+    status = np.zeros(B, np.int8)
+    args = (*xs, T, K, lengths_np, term.numpy(), ll, *flat, grads, status, np.float32(_tiny32(K)))
+    if not _run_float32_kernel(k, args, lengths_np):  # it did not compile here: the float64 kernel instead
         ll, u, v, w, bad = _fb64(k, log_pi, log_term, log_cont, log_eta, lengths, term)
         g = None
         if grads:
             tw = _term_weight(lengths, term, T).unsqueeze(-1)
             g = (u.clone(), torch.where(tw, u - w, torch.zeros((), dtype=u.dtype)), w.clone(), v.clone())
         return NumbaEStep(ll, u, v, w, g, bad, torch.zeros(B, dtype=torch.bool), 0)
-    invalid = (status & 2).bool()
-    redo = (status & 1).bool() & ~invalid
+    # after the kernel the interpreter's and PyTorch's code is cold in the caches (each PyTorch call then costs
+    # tens of microseconds): the common case, every row certified and valid, takes one status test
+    if not status.any():
+        return NumbaEStep(torch.from_numpy(ll.astype(np.float32)), u, v, w, tuple(outs[3:]) if grads else None,
+                          _NO_ROWS.expand(B), _NO_ROWS.expand(B), 0)  # fmt: skip
+    ll = torch.from_numpy(ll)
+    invalid = torch.from_numpy((status & 2) != 0)
     bad = torch.zeros(B, dtype=torch.bool)
-    n_redo = int(redo.sum())
+    redo_np = ((status & 1) != 0) & ((status & 2) == 0)
+    n_redo = int(redo_np.sum())
     if n_redo:
-        rows = redo.nonzero().flatten()
+        rows = torch.from_numpy(np.flatnonzero(redo_np))
         sub = [x.index_select(0, rows) for x in (log_pi, log_term, log_cont, log_eta)]
         ll_r, u_r, v_r, w_r, bad_r = _fb64(k, *sub, lengths[rows].contiguous(), term[rows].contiguous())
         ll[rows] = ll_r.double()
@@ -293,7 +301,7 @@ def numba_e_step(
             ge[rows] = v_r
             tw = _term_weight(lengths[rows], term[rows], T).unsqueeze(-1)
             gt[rows] = torch.where(tw, u_r - w_r, torch.zeros((), dtype=u_r.dtype))
-    return NumbaEStep(ll.to(log_pi.dtype), u, v, w, tuple(outs[3:]) if grads else None, bad, invalid, n_redo)
+    return NumbaEStep(ll.to(torch.float32), u, v, w, tuple(outs[3:]) if grads else None, bad, invalid, n_redo)
 
 
 def _term_weight(lengths: Tensor, term: Tensor, T: int) -> Tensor:

@@ -475,7 +475,7 @@ def forward_backward(
     ``d/dlog_pi = u``, ``d/dlog_eta = v``, ``d/dlog_cont = w`` and ``d/dlog_term = u - w`` (at a row's last valid
     step: ``u`` if ``terminal`` else 0). Training is thus ``(-out.log_likelihood).mean().backward()``.
 
-    Everything stays finite in float32 on very long trajectories: messages are normalised every step, nothing is
+    Everything stays finite in float32 on very long trajectories: messages are scaled every step, nothing is
     clipped and no epsilon is added; ``-inf`` entries (an option that cannot produce an action) are exact zeros.
 
     Args:
@@ -497,10 +497,12 @@ def forward_backward(
             parallel, a scan across chunks, then every message recovered in parallel by the reference's own
             log-space step; rows whose chunk boundaries do not check out (possible only with extreme
             near-deterministic probabilities) are recomputed by the reference (about ``3 sqrt(T)`` sequential
-            steps of O(K^2) work, computed in float64). ``"numba"``: a compiled CPU kernel (needs Numba, the
-            ``fast`` extra; float32/float64): the time loop in machine code, scaled float64 probability space,
-            one trajectory per thread (``torch.get_num_threads()`` threads); rows it cannot certify (extreme
-            near-deterministic inputs) are recomputed by the reference. The first call of a session loads or
+            steps of O(K^2) work, computed in float64). ``"numba"``: compiled CPU kernels (need Numba, the
+            ``fast`` extra; float32/float64): the time loop in machine code, scaled probability space, one
+            trajectory per thread (``torch.get_num_threads()`` threads). float32 inputs run a float32 kernel on
+            8-lane vectors that also writes the gradient and checks the values it reads; the rows it cannot
+            certify (near-deterministic inputs) go to a float64 kernel, and the rows that one cannot certify
+            (extreme inputs) to the reference. The first call of a session loads or
             compiles the kernel (seconds; see ``docs/performance.md``). ``"triton"``: a fused GPU kernel (CUDA
             and Triton), the time loop inside the kernel, one program per block of rows. ``"auto"`` (default):
             ``"triton"`` for CUDA tensors when Triton is available and K <= 128; on the CPU ``"numba"`` when
