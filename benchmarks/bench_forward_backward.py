@@ -210,7 +210,7 @@ def numba_breakdown(B, T, K, reps, others=()):
     st32 = np.zeros(B, np.int8)
 
     def kernel32(grads):
-        k.fb32_rows(*flat, T, K, lengths, termn, np.empty(B), *kept32, grads, st32, tiny, 0, B)
+        k.fb32_rows(*flat, T, K, lengths, termn, np.empty(B), *kept32, grads, st32, tiny, k.EXP_CONSTANTS, 0, B)
 
     def grad_kernel():
         k.grad_rows(g.numpy(), u.numpy(), v.numpy(), w.numpy(), lengths, termn, *kept, 0, B)

@@ -268,7 +268,7 @@ def numba_e_step(
         flat += [np.empty((1, 0), np.float32)] * 4
     ll = np.empty(B)
     status = np.zeros(B, np.int8)
-    args = (*xs, T, K, lengths_np, term.numpy(), ll, *flat, grads, status, np.float32(_tiny32(K)))
+    args = (*xs, T, K, lengths_np, term.numpy(), ll, *flat, grads, status, np.float32(_tiny32(K)), k.EXP_CONSTANTS)
     if not _run_float32_kernel(k, args, lengths_np):  # it did not compile here: the float64 kernel instead
         ll, u, v, w, bad = _fb64(k, log_pi, log_term, log_cont, log_eta, lengths, term)
         g = None

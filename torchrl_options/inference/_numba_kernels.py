@@ -17,7 +17,9 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
-from torchrl_options.inference._simd import (
+from torchrl_options.inference._simd import (  # noqa: F401 (EXP_CONSTANTS: the kernels' callers pass it)
+    EXP_CONSTANTS,
+    exp_constants,
     nan_or_posinf,
     vadd,
     vdiv,
@@ -404,7 +406,7 @@ def _st(x, i, v, n):
 
 
 @_jit(inline="always")
-def _start32(leb, K, NC, KP, X, padv):
+def _start32(leb, K, NC, KP, X, padv, ec):
     """``alpha_0 = eta_0`` normalised, into the message slot of ``X``'s step 0. Returns its log-normaliser, the
     validity sum of the ``log_eta`` entries read and the smallest entry before normalisation (lane-wise)."""
     mx = vsplat(_NINF32)
@@ -418,7 +420,7 @@ def _start32(leb, K, NC, KP, X, padv):
     for c in range(NC):
         x = _ld(leb, c * _W, K - c * _W)
         chk = vadd(chk, x)
-        e = vexp(vsub(x, vsplat(me)))
+        e = vexp(vsub(x, vsplat(me)), ec)
         vstore(X, 3 * KP + c * _W, e)
         acc = vadd(acc, e)
     z = vsum(acc)
@@ -433,7 +435,7 @@ def _start32(leb, K, NC, KP, X, padv):
 
 
 @_jit(inline="always")
-def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, pad):
+def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, pad, ec):
     """Forward step ``t -> t + 1`` for K <= 8 (one vector per step), the message ``a`` kept in a register: the
     step's factors (stored in ``X`` for the backward pass) and the new normalised message."""
     j = t * 4 * _W
@@ -448,9 +450,9 @@ def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, 
     y = _ld(leb, o + K, K)
     chk = vadd(chk, vadd(vadd(x1, x2), y))
     fx = vmax(fx, vmax(vmax(x1, x2), y))
-    d = vexp(x1)  # stay: pi (1 - psi)
-    cc = vexp(x2)  # terminate: pi psi
-    e = vexp(y)  # start: eta_{t+1}
+    d = vexp(x1, ec)  # stay: pi (1 - psi)
+    cc = vexp(x2, ec)  # terminate: pi psi
+    e = vexp(y, ec)  # start: eta_{t+1}
     vstore(X, j, d)
     vstore(X, j + _W, cc)
     vstore(X, j + 2 * _W, e)
@@ -472,7 +474,7 @@ def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, 
 
 
 @_jit(inline="always")
-def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv, padv):
+def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv, padv, ec):
     """Forward step ``t -> t + 1``, any K (``NC`` vectors per step), the message in ``X``."""
     j = t * 4 * KP
     o = t * K
@@ -495,9 +497,9 @@ def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
         y = _ld(leb, o + K + c * _W, n)
         chk = vadd(chk, vadd(vadd(x1, x2), y))
         fx = vmax(fx, vmax(vmax(x1, x2), y))
-        d = vexp(x1)
-        cc = vexp(x2)
-        e = vexp(y)
+        d = vexp(x1, ec)
+        cc = vexp(x2, ec)
+        e = vexp(y, ec)
         vstore(X, k, d)
         vstore(X, k + KP, cc)
         vstore(X, k + 2 * KP, e)
@@ -527,7 +529,7 @@ def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
 
 @_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, prod, llv, tiny,
-              ub, vb, wb, gpb, gtb, gcb, geb, grads, bv, wn, padv, ll_out, status):  # fmt: skip
+              ub, vb, wb, gpb, gtb, gcb, geb, grads, bv, wn, padv, ll_out, status, ec):  # fmt: skip
     """Row ``b`` after its forward pass: the end factor, the backward pass fused with the marginals (and, with
     ``grads``, the four gradients for an upstream gradient of 1), zeros on padding, and the row's status."""
     S4 = 4 * KP
@@ -554,7 +556,7 @@ def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, p
         p = _ld(lpb, o + c * _W, n)
         if term:
             p = vadd(p, _ld(ltb, o + c * _W, n))
-        d = vexp(vsub(p, vsplat(m)))
+        d = vexp(vsub(p, vsplat(m)), exp_constants(ec))
         vstore(X, j + c * _W, d)
         qa = vfma(vload(X, j + 3 * KP + c * _W), d, qa)
     z = vsum(qa)
@@ -686,7 +688,7 @@ def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, p
 
 @_jit(noalias=True, nogil=True, fastmath=_FASTMATH)
 def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, gc, ge, grads, status, tiny,
-              b0, b1):  # fmt: skip
+              ec, b0, b1):  # fmt: skip
     """Forward-backward of rows ``b0 .. b1 - 1`` in float32 (see :mod:`._numba_fb`). Inputs and outputs are
     ``[B, T * K]`` float32 (C-contiguous); only each row's valid prefix of the inputs is read. Writes ``ll_out``
     [B] (float64), ``u``, ``v``, ``w`` and, with ``grads``, ``gp``, ``gt``, ``gc``, ``ge`` (the Expectation-Gradient
@@ -716,10 +718,11 @@ def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, 
     padv = np.zeros(KP, np.float32)  # +inf on the lanes beyond K (excluded from the minima), 0 elsewhere
     for h in range(K, KP):
         padv[h] = _INF32
+    c = exp_constants(ec)
     for b in range(b0, b1):
         L = lengths[b]
         lpb, ltb, lcb, leb = lp[b], lt[b], lc[b], le[b]
-        llv, chk, mn = _start32(leb, K, NC, KP, X, padv)
+        llv, chk, mn = _start32(leb, K, NC, KP, X, padv, c)
         fx = vsplat(_NINF32)
         prod = 1.0
         if NC == 1:
@@ -727,10 +730,10 @@ def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, 
             a = vload(X, 3 * _W)
             for t in range(L - 1):
                 a, chk, mn, fx, prod, llv = _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod,
-                                                        llv, pad0)  # fmt: skip
+                                                        llv, pad0, c)  # fmt: skip
         else:
             for t in range(L - 1):
                 chk, mn, fx, prod, llv = _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
-                                                 padv)  # fmt: skip
+                                                 padv, c)  # fmt: skip
         _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, terminal[b], X, RZ, QS, chk, mn, fx, prod, llv, tiny, u[b],
-                  v[b], w[b], gp[b], gt[b], gc[b], ge[b], grads, bv, wn, padv, ll_out, status)  # fmt: skip
+                  v[b], w[b], gp[b], gt[b], gc[b], ge[b], grads, bv, wn, padv, ll_out, status, ec)  # fmt: skip

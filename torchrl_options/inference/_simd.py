@@ -25,6 +25,8 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic, models, register_model
 
 __all__ = [
+    "EXP_CONSTANTS",
+    "exp_constants",
     "f32x8",
     "nan_or_posinf",
     "vadd",
@@ -292,32 +294,58 @@ _LOG2E = 1.4426950408889634
 _LN2_HI = 0.693359375  # exact in float32 (Cephes' split of ln 2)
 _LN2_LO = -2.12194440e-4
 _EXP_MIN = -87.0  # exp(-87) = 1.6e-38, just above float32's smallest normal number
+#: The constants of :func:`vexp`, in the order it reads them (see :data:`EXP_CONSTANTS`).
+EXP_CONSTANTS = np.array([_EXP_MIN, _LOG2E, 0.5, -_LN2_HI, -_LN2_LO, 127.0, *_EXP_POLY[::-1]], np.float32)
+_N_EXP = len(EXP_CONSTANTS)
 
 
 @intrinsic
-def vexp(typingctx, x):
-    """Lane-wise ``exp(x)`` for ``x <= 0`` (about 1 ulp); exactly 0 below -87, ``-inf`` included."""
-    if x != f32x8:
+def exp_constants(typingctx, arr):
+    """The constants of :func:`vexp`, each in every lane, from ``arr`` (:data:`EXP_CONSTANTS`, a 1-D float32 array).
+
+    Read from memory at run time, once, before the loops (not compile-time constants): the compiler then keeps
+    them in registers (or folds a reload into the instruction that uses it) instead of reloading each from the
+    constant pool, with its address, at every use inside the loops.
+    """
+    if not _is_f32_array(arr):
+        return None
+    tup = types.UniTuple(f32x8, _N_EXP)
+
+    def codegen(context, builder, sig, args):
+        vals = []
+        for j in range(_N_EXP):
+            x = builder.load(_elem_ptr(context, builder, sig.args[0], args[0], ir.Constant(ir.IntType(64), j)))
+            vals.append(_splat(builder, x))
+        return context.make_tuple(builder, tup, vals)
+
+    return tup(arr), codegen
+
+
+@intrinsic
+def vexp(typingctx, x, c):
+    """Lane-wise ``exp(x)`` for ``x <= 0`` (about 1 ulp); exactly 0 below -87, ``-inf`` included. ``c``: the
+    constants of :func:`exp_constants`."""
+    if x != f32x8 or c != types.UniTuple(f32x8, _N_EXP):
         return None
 
     def codegen(context, builder, sig, args):
-        (x,) = args
+        x, ctup = args
+        lo, log2e, half, ln2_hi, ln2_lo, bias, *poly = cgutils.unpack_tuple(builder, ctup, _N_EXP)
 
         def fma(a, b, c):
             return _call(builder, "llvm.fma.v8f32", _V, [a, b, c])
 
-        lo = _const(_EXP_MIN)
         ok = builder.fcmp_ordered(">=", x, lo)
         xc = builder.select(ok, x, lo)
-        k = _call(builder, "llvm.floor.v8f32", _V, [fma(xc, _const(_LOG2E), _const(0.5))])
-        r = fma(k, _const(-_LN2_HI), xc)
-        r = fma(k, _const(-_LN2_LO), r)
-        p = _const(_EXP_POLY[-1])
-        for q in _EXP_POLY[-2::-1]:
-            p = fma(p, r, _const(q))
-        bits = builder.shl(builder.add(builder.fptosi(k, _VI), ir.Constant(_VI, [127] * LANES)),
-                           ir.Constant(_VI, [23] * LANES))  # fmt: skip
+        k = _call(builder, "llvm.floor.v8f32", _V, [fma(xc, log2e, half)])
+        r = fma(k, ln2_hi, xc)
+        r = fma(k, ln2_lo, r)
+        p = poly[0]
+        for q in poly[1:]:
+            p = fma(p, r, q)
+        # 2^k from the exponent bits: k + 127 is exact in float32 (k is an integer in [-126, 0])
+        bits = builder.shl(builder.fptosi(builder.fadd(k, bias), _VI), ir.Constant(_VI, [23] * LANES))
         y = builder.fmul(p, builder.bitcast(bits, _V))
         return builder.select(ok, y, ir.Constant(_V, [0.0] * LANES))
 
-    return f32x8(x), codegen
+    return f32x8(x, c), codegen
