@@ -433,6 +433,8 @@ def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
     for bad, error in ((0, ValueError), (1.5, TypeError), (True, TypeError)):  # refused when the settings are read
         with pytest.raises(error, match="ddo_m_steps must be an int"):
             AtariConfig.from_dict({"ddo_m_steps": bad})
+    assert _config(["preset=faithful-cpu"]).atari.ddo_starts == "one"  # the kept runs: one start
+    assert _config(["preset=smoke", "atari.ddo_starts=defaults"]).atari.ddo_starts == "defaults"
     with pytest.raises(ValueError, match="ddo_starts must be one of \\('one', 'defaults'\\), got 'many'"):
         AtariConfig.from_dict({"ddo_starts": "many"})
 

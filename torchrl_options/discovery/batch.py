@@ -202,7 +202,8 @@ def discovery_batch(
         settings (DiscoverySettings): the run's settings (keys, action space, ``num_actions``, ``device``).
 
     Keyword Args:
-        options, meta_control (TensorDictModuleBase, optional): modules given by the caller, checked on the data.
+        options (TensorDictModuleBase, optional): an options module given by the caller, checked on the data.
+        meta_control (TensorDictModuleBase, optional): a meta-control module given by the caller, checked too.
         infer_num_actions (bool): infer a missing ``num_actions`` for discrete actions. Defaults to ``True``.
 
     Examples:

@@ -16,42 +16,12 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
-from torchrl_options.discovery.batch import as_trajectory_batch, discovery_batch, minibatch
-from torchrl_options.discovery.fit import converged_at, fit_ddo
-from torchrl_options.discovery.networks import (
-    check_networks,
-    check_width_choice,
-    default_options,
-    Networks,
-    resolve_settings,
-)
-from torchrl_options.discovery.settings import (
-    AUTO_RESTARTS,
-    CONTINUOUS_PATIENCE,
-    DEFAULT_PATIENCE,
-    DEFAULT_RESTARTS,
-    DiscoverySettings,
-    INITS,
-    PAPER_SETTINGS,
-)
+from torchrl_options.discovery.batch import discovery_batch
+from torchrl_options.discovery.networks import check_networks, check_width_choice, Networks, resolve_settings
+from torchrl_options.discovery.settings import DiscoverySettings
 from torchrl_options.discovery.stages import DiscoveryResult, run_discovery, seeded
 
-__all__ = [
-    "AUTO_RESTARTS",
-    "CONTINUOUS_PATIENCE",
-    "DEFAULT_PATIENCE",
-    "DEFAULT_RESTARTS",
-    "DiscoveryResult",
-    "INITS",
-    "PAPER_SETTINGS",
-    "as_trajectory_batch",
-    "converged_at",
-    "default_options",
-    "discover",
-    "discover_options",
-    "fit_ddo",
-    "minibatch",
-]
+__all__ = ["discover", "discover_options"]
 
 logger = logging.getLogger(__name__)
 
@@ -137,7 +107,7 @@ def discover_options(
     followed by ``m_steps`` optimizer steps (G-steps) on the expected complete-data log-likelihood, whose gradient
     at the E-step's parameters is the gradient of the log-likelihood: ``m_steps=1`` is the paper's
     Expectation-Gradient, ``m_steps > 1`` (default 5) a generalised EM that gets more out of each (costly) E-step. The networks
-    are evaluated once per distinct state and state-action pair of the batch (:class:`TabulatedDDO`), which makes
+    are evaluated once per distinct state and state-action pair of the batch (:class:`~torchrl_options.discovery.TabulatedDDO`), which makes
     an iteration much cheaper when states repeat (grid worlds); results equal :class:`~torchrl_options.DDOLoss`'s
     to float rounding.
 
@@ -152,21 +122,21 @@ def discover_options(
     ending at the best iteration. Wider networks fit small data sets better than the truth does with other labels;
     the paper's 2 units, one start and plain Expectation-Gradient stop in local optima on several problems, and
     random starts miss the optimum next to the truth when options share moves.
-    :data:`PAPER_SETTINGS` gives the paper's settings (``discover_options(data, K, **PAPER_SETTINGS)``). The result
+    :data:`~torchrl_options.discovery.PAPER_SETTINGS` gives the paper's settings (``discover_options(data, K, **PAPER_SETTINGS)``). The result
     (``return_info=True``) reports each start's likelihood, each option's usage and duplicated options, and a
     warning is logged when they suggest a local optimum (:func:`~torchrl_options.discovery.option_diagnostics`).
 
     Args:
         trajectories: a ``[B, T]`` tensordict with ``("collector", "mask")`` (missing: all valid), one ``[T]``
             trajectory, a list of ``[T_i]`` trajectories, or a TorchRL replay buffer whose ``sample()`` returns
-            flat slices of trajectories (e.g. with a ``SliceSampler``), split by :func:`as_trajectory_batch`.
+            flat slices of trajectories (e.g. with a ``SliceSampler``), split by :func:`~torchrl_options.as_trajectory_batch`.
         num_options (int): K.
 
     Keyword Args:
         options (TensorDictModuleBase, optional): one options module to train (any module writing the option
             entries, modified in place), trained from one start as it comes (``init="auto"`` then means
             ``"random"``, and there are no restarts or width choice: those need fresh modules, see
-            ``options_factory``). Default: an :class:`OptionsMLP` (or :class:`GaussianOptionsMLP`) built from the
+            ``options_factory``). Default: an :class:`~torchrl_options.OptionsMLP` (or :class:`~torchrl_options.GaussianOptionsMLP`) built from the
             data.
         options_factory (callable, optional): your own networks with every start strategy: called as
             ``options_factory()``, it returns a fresh options module each time (any ``TensorDictModuleBase`` writing
@@ -182,10 +152,10 @@ def discover_options(
             ``options`` or ``options_factory``, not both. ``num_cells``, ``termination_cells``, ``activation``,
             ``architecture`` and ``init_scale`` describe the default modules only (``init_scale`` is refused with
             either).
-        meta_control (str or module): ``"uniform"`` (H1u, default), ``"learned"`` (an :class:`MetaControlMLP`,
+        meta_control (str or module): ``"uniform"`` (H1u, default), ``"learned"`` (an :class:`~torchrl_options.MetaControlMLP`,
             H1s, or ``meta_control_factory``'s module) or a module writing ``meta_logits``.
         meta_control_factory (callable, optional): with ``meta_control="learned"``, builds each start's learned
-            meta-control instead of the default :class:`MetaControlMLP` (a module writing ``meta_logits``
+            meta-control instead of the default :class:`~torchrl_options.MetaControlMLP` (a module writing ``meta_logits``
             ``[..., K]``), called as ``options_factory`` is (``meta_control_factory(num_cells=width)`` with
             ``num_cells="auto"``).
         num_actions (int, optional): A for discrete actions; default: ``max(action) + 1`` over the data.
@@ -202,9 +172,9 @@ def discover_options(
             trajectories.
         termination_cells (int or sequence of int, optional): hidden sizes of the default modules' termination
             networks. Defaults to ``num_cells`` for discrete actions and, for continuous ones, to two layers of twice
-            the widest of ``num_cells`` (``[16, 16]`` with the default width; see :func:`default_options`).
+            the widest of ``num_cells`` (``[16, 16]`` with the default width; see :func:`~torchrl_options.discovery.default_options`).
         init_scale (float, optional): for continuous actions, the standard deviation every fresh Gaussian option
-            starts at. Defaults to the demonstrations' action spread (see :func:`default_options`); ``1.0`` was the
+            starts at. Defaults to the demonstrations' action spread (see :func:`~torchrl_options.discovery.default_options`); ``1.0`` was the
             default until 2026-12-05.
         init (str): how each start's options are drawn before DDO: ``"random"``, ``"kmeans"`` (pre-clustering of
             state-action pairs, appendix B), ``"segments"`` (the demonstrations cut where the actions change regime,
@@ -212,19 +182,19 @@ def discover_options(
             :func:`~torchrl_options.discovery.pretrain_on_segments`; every start draws its own clusters), or
             ``"auto"`` (default): for fresh modules (the default ones or ``options_factory``'s) given tensordicts,
             segment starts, two of every three clustered by where the segments end and the third by their actions
-            (``features="actions"``), :data:`AUTO_RESTARTS` of them unless ``restarts`` is set; ``"random"`` (the
+            (``features="actions"``), :data:`~torchrl_options.discovery.AUTO_RESTARTS` of them unless ``restarts`` is set; ``"random"`` (the
             modules as they come) when ``options`` are given or the trajectories come from a replay buffer.
         num_iterations (int): the most iterations (E-steps). Defaults to 1000 (the stopping rule usually ends
             training sooner).
         m_steps (int): optimizer steps per E-step (G-steps); 1 is the paper's Expectation-Gradient. Defaults to 5.
         tol (float, optional): stopping rule: stop once the log-likelihood per step has gained less than ``tol``
-            nats over the last ``patience`` iterations (see :func:`converged_at`; meant for full-batch training,
+            nats over the last ``patience`` iterations (see :func:`~torchrl_options.discovery.converged_at`; meant for full-batch training,
             minibatch estimates are noisy). Defaults to 1e-4; ``None`` runs all ``num_iterations``. With ``tol`` on
             the full batch, the last training (the chosen start's, continued) ends at its iteration with the
             highest log-likelihood per step (``fit_ddo(keep_best=True)``), not at its last one; a start that meets
             the stopping rule within ``restart_iterations`` is returned as it stopped.
         patience (int, optional): the stopping rule's window, in iterations. Defaults to 20 for discrete actions and
-            to :data:`CONTINUOUS_PATIENCE` (100) for continuous ones: a Gaussian fit's likelihood pauses for tens of
+            to :data:`~torchrl_options.discovery.CONTINUOUS_PATIENCE` (100) for continuous ones: a Gaussian fit's likelihood pauses for tens of
             iterations and then climbs again (measured in ``docs/experiments/planted_suite.md``).
         restarts (int): starts from ``restarts`` initialisations (as ``init`` draws them), each trained for
             at most ``restart_iterations`` iterations; the one with the highest training log-likelihood (a
@@ -233,7 +203,7 @@ def discover_options(
             for each start (the default ``options`` or an ``options_factory``, a meta-control given by name) and an
             optimizer factory (not an instance). ``None`` (default): n starts
             when fresh modules can be drawn and ``num_iterations >= n * restart_iterations``, else 1, with n
-            :data:`AUTO_RESTARTS` (6) for ``init="auto"`` and :data:`DEFAULT_RESTARTS` (4) otherwise.
+            :data:`~torchrl_options.discovery.AUTO_RESTARTS` (6) for ``init="auto"`` and :data:`~torchrl_options.discovery.DEFAULT_RESTARTS` (4) otherwise.
         restart_iterations (int): the iterations given to each start when ``restarts > 1``. Defaults to 40.
         batch_size (int, optional): trajectories per minibatch; ``None`` uses all (or the buffer's batch size).
         optimizer: an optimizer instance over the modules' parameters, or a factory called as
@@ -247,7 +217,7 @@ def discover_options(
             states are restored on return, so the caller's random numbers do not change.
         progress (bool): show a tqdm progress bar. Defaults to ``True``.
         trajectory_key (NestedKey): trajectory ids used to split replay-buffer samples.
-        return_info (bool): return a :class:`DiscoveryResult` (options, meta-control, history).
+        return_info (bool): return a :class:`~torchrl_options.discovery.DiscoveryResult` (options, meta-control, history).
         log_every (int): log the diagnostics every this many iterations.
         desc (str): the progress bar's label, e.g. which run it fits (``"DDO supervised seed 0, K=4, uniform"``).
             Defaults to ``"DDO"``.
@@ -266,7 +236,7 @@ def discover_options(
         split_merge_iterations (int): the most iterations of each move's re-fit. Defaults to 300.
 
     Returns:
-        The trained options module, or a :class:`DiscoveryResult` with ``return_info=True``.
+        The trained options module, or a :class:`~torchrl_options.discovery.DiscoveryResult` with ``return_info=True``.
 
     Examples:
         >>> import torch

@@ -314,16 +314,17 @@ def fit_starts(
     """A fit of one width: ``settings.restarts`` starts (:func:`start_strategy`, :func:`make_start`), the best one
     kept and trained on (:func:`best_of_starts`), summarised (:func:`summarize`)."""
     batches = _Batches(batch, settings, generator)
-    tables: list[TabulatedDDO | None] = [None]
+    table: TabulatedDDO | None = None  # tabulated once, re-used by every start's modules
 
     def make(r: int) -> Start:
+        nonlocal table
         strategy = start_strategy(settings.init, r, given_options=networks.options is not None,
                                   from_buffer=batch.buffer is not None)  # fmt: skip
-        start = make_start(batch, settings, networks, strategy, generator, tables[0], first=r == 0)
+        start = make_start(batch, settings, networks, strategy, generator, table, first=r == 0)
         if r == 0 and start.table is not None:
             logger.info("DDO: %d valid steps, %d distinct states, %d distinct state-action pairs",
                         int(start.table.num_steps), start.table.num_states, start.table.num_pairs)  # fmt: skip
-        tables[0] = start.table
+        table = start.table
         return start
 
     def train(start: Start, n: int, label: str, final: bool) -> list[dict]:

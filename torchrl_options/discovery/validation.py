@@ -153,6 +153,28 @@ def check_step_data(
         )
 
 
+def _one_step_output(module: Any, data: TensorDictBase, name: str, key: str) -> tuple[TensorDictBase, torch.Tensor]:
+    """``module``'s output on the first step of a ``[B, T]`` batch (no gradients) and its ``key`` entry ``[..., K]``;
+    a module that cannot read the batch is refused with the per-step shapes of the entries it reads."""
+    if not isinstance(module, TensorDictModuleBase):
+        raise TypeError(f"{name} must be a TensorDictModuleBase, got {type(module).__name__}.")
+    step = data[:1, :1].clone(False)
+    try:
+        with torch.no_grad():
+            out = module(step.to(next(iter(module.parameters()), torch.empty(0)).device))
+    except (RuntimeError, KeyError, ValueError, IndexError) as err:
+        detail = " ".join(str(err).split())[:200]
+        shapes = {str(k): list(step.get(k).shape[2:]) for k in getattr(module, "in_keys", []) if k in step.keys(True)}
+        raise ValueError(
+            f"the {name} module cannot read the trajectories (per-step entry shapes {shapes}; another observation "
+            f"size than it was built for?): {type(err).__name__}: {detail}"
+        ) from None
+    entry = out.get(key, None)
+    if entry is None:
+        raise ValueError(f"the {name} module must write {key!r} [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    return out, entry
+
+
 def check_options_module(
     options: TensorDictModuleBase,
     data: TensorDictBase,
@@ -165,22 +187,7 @@ def check_options_module(
     """Runs ``options`` on one step of ``data`` and checks what it writes against ``num_options`` (and
     ``num_actions``): a module of another K, or one that cannot read the observations, is refused here. Returns the
     module's number of options K."""
-    if not isinstance(options, TensorDictModuleBase):
-        raise TypeError(f"{name} must be a TensorDictModuleBase, got {type(options).__name__}.")
-    step = data[:1, :1].clone(False)
-    try:
-        with torch.no_grad():
-            out = options(step.to(next(iter(options.parameters()), torch.empty(0)).device))
-    except (RuntimeError, KeyError, ValueError, IndexError) as err:
-        detail = " ".join(str(err).split())[:200]
-        shapes = {str(k): list(step.get(k).shape[2:]) for k in getattr(options, "in_keys", []) if k in step.keys(True)}
-        raise ValueError(
-            f"the {name} module cannot read the trajectories (per-step entry shapes {shapes}; another observation "
-            f"size than it was built for?): {type(err).__name__}: {detail}"
-        ) from None
-    term = out.get("termination_logits", None)
-    if term is None:
-        raise ValueError(f"the {name} module must write 'termination_logits' [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    out, term = _one_step_output(options, data, name, "termination_logits")
     if num_options is not None and int(term.shape[-1]) != num_options:
         raise ValueError(f"num_options={num_options} but the {name} module has K={int(term.shape[-1])} options.")
     logits = out.get("option_logits", None)
@@ -257,17 +264,6 @@ def check_meta_control_module(
     meta_control: Any, data: TensorDictBase, num_options: int, *, name: str = "meta_control"
 ) -> None:
     """Runs a meta-control module on one step of ``data`` and checks that it writes ``meta_logits`` ``[..., K]``."""
-    if not isinstance(meta_control, TensorDictModuleBase):
-        raise TypeError(f"the {name} module must be a TensorDictModuleBase, got {type(meta_control).__name__}.")
-    step = data[:1, :1].clone(False)
-    try:
-        with torch.no_grad():
-            out = meta_control(step.to(next(iter(meta_control.parameters()), torch.empty(0)).device))
-    except (RuntimeError, KeyError, ValueError, IndexError) as err:
-        detail = " ".join(str(err).split())[:200]
-        raise ValueError(f"the {name} module cannot read the trajectories: {type(err).__name__}: {detail}") from None
-    logits = out.get("meta_logits", None)
-    if logits is None:
-        raise ValueError(f"the {name} module must write 'meta_logits' [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    _, logits = _one_step_output(meta_control, data, name, "meta_logits")
     if logits.shape[-1] != num_options:
         raise ValueError(f"num_options={num_options} but the {name} module writes {logits.shape[-1]} meta_logits.")

@@ -269,7 +269,7 @@ def _upper_level(batch, settings: DiscoverySettings, hierarchy: OptionHierarchy,
 
 
 class HierarchicalEStep:
-    """The E-step of :class:`HierarchicalDDOLoss` for :func:`~torchrl_options.discovery.discover.fit_ddo`, with a
+    """The E-step of :class:`HierarchicalDDOLoss` for :func:`~torchrl_options.discovery.fit.fit_ddo`, with a
     G-step objective that several optimizer steps can reuse (a generalised EM).
 
     ``estep(batch)`` runs the exact hierarchical forward-backward once and returns ``(record, objective)``:
