@@ -126,7 +126,7 @@ DISCOVERY = [
     ("segment: obs features differ", lambda: segment(D, OptionsMLP(4, 3, 2)), ValueError, "cannot read the trajectories"),
     ("segment: missing action", lambda: segment(_without(D, "action"), OptionsMLP(2, 3, 2)), ValueError, "no 'action' entry"),
     ("segment: threshold 2", lambda: segment(D, OptionsMLP(2, 3, 2), method="posterior", threshold=2.0), ValueError,
-     "threshold must be a probability in [0, 1]"),
+     "threshold must be a number in [0, 1], got 2"),
     ("segment: batch_size 0", lambda: segment(D, OptionsMLP(2, 3, 2), batch_size=0), ValueError, "batch_size must be an int >= 1"),
     ("segment: meta_control of a wrong type", lambda: segment(D, OptionsMLP(2, 3, 2), meta_control=3), TypeError,
      "meta_control must be None or a TensorDictModuleBase"),
@@ -290,7 +290,7 @@ CONFIGS = [
     ("atari checkpoint_every -1", lambda: AtariConfig(checkpoint_every=-1), ValueError, "checkpoint_every must be an int >= 0"),
     ("atari frame_skip 1.5", lambda: AtariConfig(frame_skip=1.5), TypeError, "frame_skip must be an int"),
     ("atari unknown key", lambda: AtariConfig.from_dict({"phase2_episodes": 3}), ValueError, "unknown Atari settings"),
-    ("atari ddo_m_steps 0", lambda: AtariConfig(ddo_m_steps=0), ValueError, "ddo_m_steps must be a positive int"),
+    ("atari ddo_m_steps 0", lambda: AtariConfig(ddo_m_steps=0), ValueError, "ddo_m_steps must be an int >= 1, got 0"),
 ]  # fmt: skip
 
 

@@ -21,6 +21,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
 
+from torchrl_options.checks import check_number
+
 __all__ = ["intra_option_transitions", "option_suffix_transitions"]
 
 
@@ -181,8 +183,7 @@ def option_suffix_transitions(
     """
     if data.ndim == 0:
         raise ValueError("option_suffix_transitions expects data with a time dimension (shape [T] or [*B, T]).")
-    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must lie in [0, 1], got {gamma!r}.")
+    check_number(gamma, "gamma", lo=0.0, hi=1.0)
     action_key, option_key = unravel_key(action_key), unravel_key(executed_option_key)
     decision_key = unravel_key(decision_key)
     reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)

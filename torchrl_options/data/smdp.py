@@ -31,6 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.envs import Transform
 
+from torchrl_options.checks import check_bool, check_int, check_number
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 
 logger = logging.getLogger(__name__)
@@ -189,8 +190,7 @@ class SMDPTransitions:
 
 
 def _check_gamma(gamma: float) -> float:
-    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+    check_number(gamma, "gamma", lo=0.0, hi=1.0)
     return float(gamma)
 
 
@@ -431,12 +431,8 @@ class SMDPTransform(Transform):
     ):
         super().__init__()
         for name, value in (("intra_option_actions", intra_option_actions), ("option_suffixes", option_suffixes)):
-            if not isinstance(value, bool):
-                raise TypeError(f"SMDPTransform: {name} must be a bool, got {value!r}.")
-        if num_actions is not None and (
-            isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1
-        ):
-            raise ValueError(f"SMDPTransform: num_actions must be a positive int or None, got {num_actions!r}.")
+            check_bool(value, f"SMDPTransform: {name}")
+        check_int(num_actions, "SMDPTransform: num_actions", minimum=1, allow_none=True)
         if intra_option_actions and num_actions is None:
             raise ValueError(
                 "SMDPTransform: intra_option_actions=True needs num_actions (the executor's primitive actions A)."

@@ -32,7 +32,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchrl_options.inference._semiring import LOG, SAFE_LOG
+from torchrl_options.inference.semiring import LOG, SAFE_LOG
 
 __all__ = [
     "BACKENDS",

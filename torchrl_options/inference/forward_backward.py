@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from torchrl_options.inference._semiring import backward_step, end_factor, forward_messages, LOG, total
+from torchrl_options.inference.semiring import backward_step, end_factor, forward_messages, LOG, total
 
 __all__ = [
     "BACKENDS",
@@ -160,7 +160,7 @@ def _forward_backward_reference(
     row_ids: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The reference: normalised log-space forward-backward, one step at a time, O(K) per step: the log semiring's
-    :func:`~torchrl_options.inference._semiring.forward_step` and ``backward_step``, shared with :func:`viterbi`.
+    :func:`~torchrl_options.inference.semiring.forward_step` and ``backward_step``, shared with :func:`viterbi`.
 
     Works on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w)``. ``row_ids`` (the
     rows' indices in the caller's batch) only serve the zero-likelihood error message.

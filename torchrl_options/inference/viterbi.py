@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchrl_options.inference._semiring import chunked_forward_messages, end_factor, forward_messages, MAX, total
+from torchrl_options.inference.semiring import chunked_forward_messages, end_factor, forward_messages, MAX, total
 from torchrl_options.inference.forward_backward import check_forward_backward_inputs
 
 __all__ = ["VITERBI_BACKENDS", "ViterbiOutput", "viterbi", "most_likely_options"]
@@ -45,7 +45,7 @@ def viterbi(
 
     Same inputs and model as :func:`~torchrl_options.forward_backward` (Fox et al., 2017, appendix A), with the
     sums replaced by maxima; O(K) per step: the max-plus semiring's scan
-    (:func:`~torchrl_options.inference._semiring.forward_messages`, the reference forward-backward's own step), then
+    (:func:`~torchrl_options.inference.semiring.forward_messages`, the reference forward-backward's own step), then
     backpointers. Ties prefer continuing the running option (fewer boundaries), then the lowest option index.
 
     Args:
@@ -56,7 +56,7 @@ def viterbi(
     Keyword Args:
         backend (str): ``"reference"`` (default): ``T`` sequential steps of O(K) work. ``"chunked"``: the same
             max-plus scan by chunks of about ``sqrt(T)`` transitions
-            (:func:`~torchrl_options.inference._semiring.chunked_forward_messages`: chunk transfer matrices
+            (:func:`~torchrl_options.inference.semiring.chunked_forward_messages`: chunk transfer matrices
             composed in parallel, a scan across chunks, every message recovered in parallel), about ``3 sqrt(T)``
             sequential steps of O(K^2) work: faster on long trajectories with few options. The same sequence and
             log-probability up to float rounding (an exact tie between two sequences may then break the other

@@ -43,7 +43,13 @@ def key_to_config(key: NestedKey) -> str | list[str]:
 
 
 def hidden_sizes(num_cells: int | Sequence[int], name: str = "num_cells") -> list[int]:
-    """Hidden layer sizes as a list of positive ints; ``name`` is the argument named in the error."""
+    """Hidden layer sizes as a list of positive ints (``num_cells`` of the modules); ``name`` is the argument named
+    in the error.
+
+    Examples:
+        >>> hidden_sizes(8), hidden_sizes((64, 64))
+        ([8], [64, 64])
+    """
     cells = [num_cells] if isinstance(num_cells, Integral) and not isinstance(num_cells, bool) else num_cells
     if isinstance(cells, (str, bytes)) or not isinstance(cells, Sequence):
         raise TypeError(f"{name} must be an int or a sequence of ints, got {num_cells!r}.")

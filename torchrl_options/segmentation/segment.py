@@ -15,8 +15,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from torchrl_options.checks import check_int
-from torchrl_options.discovery._validation import check_options_module, check_step_data
+from torchrl_options.checks import check_int, check_number
+from torchrl_options.discovery.validation import check_options_module, check_step_data
 from torchrl_options.discovery import as_trajectory_batch, DiscoveryResult
 from torchrl_options.inference import forward_backward, most_likely_options, viterbi
 from torchrl_options.objectives import DDOLoss
@@ -160,8 +160,7 @@ def segment(
         raise ValueError(f"method must be 'viterbi' or 'posterior', got {method!r}.")
     if boundary not in ("change", "switch"):
         raise ValueError(f"boundary must be 'change' or 'switch', got {boundary!r}.")
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 <= threshold <= 1.0:
-        raise ValueError(f"threshold must be a probability in [0, 1], got {threshold!r}.")
+    check_number(threshold, "threshold", lo=0.0, hi=1.0)
     check_int(batch_size, "batch_size", minimum=1, allow_none=True)
     if isinstance(options, DiscoveryResult):
         meta_control = options.meta_control if meta_control is None else meta_control

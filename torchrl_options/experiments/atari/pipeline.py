@@ -11,6 +11,7 @@ import time
 
 import torch
 from filelock import FileLock
+from tensordict.nn import TensorDictModuleBase
 
 from torchrl_options.checkpoints import save_file, scoped_seed
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
@@ -103,17 +104,10 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     num_actions = _num_actions(game, config)
     demos = [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated"),
                       ("next", "reward")) for t in demos]  # fmt: skip
-    options = None
-    if config.option_encoding == "one_hot":
-        from torchrl_options.modules import OneHotByteOptions
-
-        with scoped_seed(seed):  # the initial weights come from the seed alone
-            options = OneHotByteOptions(int(demos[0]["observation"].shape[-1]), num_actions, k,
-                                        num_cells=list(config.options_num_cells), value_scale=1 / 255)  # fmt: skip
     result = discover_options(
         demos,
         num_options=k,
-        options=options,
+        **_ddo_starts(config, int(demos[0]["observation"].shape[-1]), num_actions, k, seed),
         num_actions=num_actions,
         num_cells=list(config.options_num_cells),
         activation="tanh",
@@ -121,8 +115,7 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         batch_size=config.ddo_batch_size,
         lr=config.ddo_lr,
         m_steps=config.ddo_m_steps,
-        restarts=1,  # the paper's protocol: one start, every iteration run
-        tol=None,
+        tol=None,  # the paper's protocol: every iteration run
         device=config.device,
         seed=seed,
         progress=False,
@@ -154,6 +147,27 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         json.dump(metadata, f)
     logger.info("%s seed %d: DDO done, %s", game, seed, {k: v for k, v in metadata.items() if k != "demo_returns"})
     return options, metadata
+
+
+def _ddo_starts(config: AtariConfig, num_bytes: int, num_actions: int, k: int, seed: int) -> dict:
+    """Where phase 2's options come from, as ``discover_options`` keyword arguments. ``ddo_starts="one"``: the
+    paper's protocol and the kept runs, one start (the one-hot network drawn from the seed alone); ``"defaults"``:
+    a factory of fresh networks, so that DDO gets its default starts (segment starts, restarts)."""
+
+    def one_hot_options() -> TensorDictModuleBase:
+        from torchrl_options.modules import OneHotByteOptions
+
+        return OneHotByteOptions(num_bytes, num_actions, k, num_cells=list(config.options_num_cells), value_scale=1 / 255)
+
+    one_hot = config.option_encoding == "one_hot"
+    if config.ddo_starts == "defaults":
+        # "bytes": the default OptionsMLP of num_cells, fresh at each start as well
+        return {"options_factory": one_hot_options if one_hot else None}
+    options = None
+    if one_hot:
+        with scoped_seed(seed):  # the initial weights come from the seed alone
+            options = one_hot_options()
+    return {"options": options, "restarts": 1}
 
 
 def demonstrations_log_likelihood(options, demos, *, chunk: int = 8) -> float:
