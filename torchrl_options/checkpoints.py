@@ -33,6 +33,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_options.checks import with_article
+
 __all__ = [
     "CheckpointFileError",
     "MissingFileError",
@@ -73,7 +75,8 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         path (str or PathLike): the file.
 
     Keyword Args:
-        what (str): what the file should be, for the error messages (e.g. ``"DQN checkpoint"``).
+        what (str): what the file should be, for the error messages (e.g. ``"DQN checkpoint"``; a trailing
+            ``" file"`` is dropped: the messages add it).
         map_location: passed to :func:`torch.load`.
 
     Returns:
@@ -96,11 +99,12 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         ...
         torchrl_options.checkpoints.CheckpointFileError: ...state.pt: this checkpoint file is empty.
     """
+    what = what[: -len(" file")] if what.endswith(" file") else what  # the messages say "... file" themselves
     path = Path(path)
     if not path.exists():
         raise MissingFileError(f"{os.fspath(path)}: no such {what} file.")
     if path.is_dir():
-        raise CheckpointFileError(f"{os.fspath(path)}: expected a {what} file, got a directory.")
+        raise CheckpointFileError(f"{os.fspath(path)}: expected {with_article(what)} file, got a directory.")
     if path.stat().st_size == 0:
         raise CheckpointFileError(f"{os.fspath(path)}: this {what} file is empty.")
     try:
@@ -115,7 +119,7 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
             found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
             name = f"it needs {found.group(1)}" if found else "not plain data"
             raise CheckpointFileError(
-                f"{os.fspath(path)}: refusing to load this {what}: it holds Python objects that only pickle can "
+                f"{os.fspath(path)}: refusing to load this {what} file: it holds Python objects that only pickle can "
                 f"rebuild ({name}), and unpickling a file can run code. {_convert_hint(path)}"
             ) from None
         raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file (corrupt: {err}).") from None
