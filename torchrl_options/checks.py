@@ -218,10 +218,17 @@ def check_distinct_keys(keys: Mapping[str, Any], owner: str, *, allow_same: Iter
 
 
 def check_numbers(
-    values: Any, name: str, *, lo: float = -math.inf, hi: float = math.inf, allow_empty: bool = True
+    values: Any,
+    name: str,
+    *,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    allow_empty: bool = True,
+    allow_nan: bool = False,
 ) -> list[float]:
     """Returns ``values`` (a sequence of real numbers, or a 1-D tensor / array of them) as a list of floats; refuses
-    another type (``TypeError``) and an entry that is NaN or outside ``[lo, hi]`` (``ValueError`` naming its index).
+    another type (``TypeError``) and an entry that is NaN (unless ``allow_nan``) or outside ``[lo, hi]``
+    (``ValueError`` naming its index).
 
     Examples:
         >>> check_numbers([0.5, 0.5], "usage", lo=0, hi=1)
@@ -247,7 +254,8 @@ def check_numbers(
         raise ValueError(f"{name} must not be empty.")
     out = []
     for i, v in enumerate(values):
-        check_number(v, f"{name}[{i}]", lo=lo, hi=hi)
+        if not (allow_nan and isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isnan(v)):
+            check_number(v, f"{name}[{i}]", lo=lo, hi=hi)
         out.append(float(v))
     return out
 
