@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import functools
 import inspect
+import json
 import os
 import pickle
 import random
@@ -48,6 +49,8 @@ __all__ = [
     "restores_global_rng",
     "scoped_seed",
     "convert_file",
+    "load_json_file",
+    "save_json_file",
 ]
 
 _TD_FORMAT = "torchrl_options.tensordict/1"
@@ -145,6 +148,55 @@ def save_file(obj: Any, path: str | os.PathLike) -> None:
     """
     with atomic_replace(path) as tmp:
         torch.save(obj, tmp)
+
+
+def save_json_file(obj: Any, path: str | os.PathLike, **dump_kwargs: Any) -> None:
+    """``json.dump`` through :func:`atomic_replace`: a run killed while writing leaves the old file or none.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "info.json")
+        >>> save_json_file({"seconds": 3.5}, path)
+        >>> load_json_file(path, what="cell info")
+        {'seconds': 3.5}
+    """
+    with atomic_replace(path) as tmp, open(tmp, "w") as f:
+        json.dump(obj, f, **dump_kwargs)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def load_json_file(path: str | os.PathLike, *, what: str = "JSON") -> Any:
+    """Reads a JSON file, naming the file in the error when it is missing, empty or not valid JSON.
+
+    Raises:
+        MissingFileError: the file does not exist.
+        CheckpointFileError: the file is empty, truncated or not JSON.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "settings.json")
+        >>> _ = open(path, "w").write('{"episodes": 2')
+        >>> load_json_file(path, what="run settings")
+        Traceback (most recent call last):
+        ...
+        torchrl_options.checkpoints.CheckpointFileError: ...settings.json: not a readable run settings file (expected JSON: Expecting ',' delimiter: line 1 column 15 (char 14)).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise MissingFileError(f"{os.fspath(path)}: no such {what} file.")
+    if path.is_dir():
+        raise CheckpointFileError(f"{os.fspath(path)}: expected {with_article(what)} file, got a directory.")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file ({type(err).__name__}: {err}).") from None
+    if not text.strip():
+        raise CheckpointFileError(f"{os.fspath(path)}: this {what} file is empty (expected JSON).")
+    try:
+        return json.loads(text)
+    except ValueError as err:
+        raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file (expected JSON: {err}).") from None
 
 
 @contextlib.contextmanager

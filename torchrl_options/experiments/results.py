@@ -68,18 +68,34 @@ class ResultsLog:
         self.path = os.fspath(path)
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         if not os.path.exists(self.path):
-            with open(self.path, "w", newline="") as f:
+            with atomic_replace(self.path) as tmp, open(tmp, "w", newline="") as f:  # never half a header
                 csv.writer(f).writerow(FIELDS)
 
     def rows(self) -> list[dict]:
+        """Every row, with ``seed``, ``episode`` (ints), ``return`` (float) and ``frames`` (int or ``None``).
+
+        Raises:
+            ValueError: naming the file and the line, for a header without the columns :data:`FIELDS` or a row
+                whose numbers do not parse.
+        """
         with open(self.path, newline="") as f:
             reader = csv.DictReader(f)
+            missing = [c for c in ("setting", "condition", "seed", "episode", "return") if c not in (reader.fieldnames or [])]
+            if missing:
+                raise ValueError(
+                    f"{self.path}: not a results file (expected the CSV columns {FIELDS}, the header lacks {missing})."
+                )
             out = []
             for row in reader:
-                row["seed"] = int(row["seed"])
-                row["episode"] = int(row["episode"])
-                row["return"] = float(row["return"])
-                row["frames"] = int(row["frames"]) if row.get("frames") not in (None, "") else None
+                try:
+                    row["seed"] = int(row["seed"])
+                    row["episode"] = int(row["episode"])
+                    row["return"] = float(row["return"])
+                    row["frames"] = int(row["frames"]) if row.get("frames") not in (None, "") else None
+                except (TypeError, ValueError) as err:
+                    raise ValueError(
+                        f"{self.path}, line {reader.line_num}: not a valid results row ({err}); expected {FIELDS}."
+                    ) from None
                 out.append(row)
         return out
 

@@ -3,7 +3,6 @@ intervals over seeds, paired differences), aggregates over games, greedy evaluat
 from __future__ import annotations
 
 import glob
-import json
 import logging
 import os
 from collections import defaultdict
@@ -12,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from torchrl_options.checkpoints import load_json_file
 from torchrl_options.experiments.atari.conditions import _describe, _option_flags, CONDITIONS
 from torchrl_options.experiments.intervals import interval_verdict, mean_interval, paired_difference_interval
 from torchrl_options.experiments.results import ResultsLog
@@ -74,8 +74,8 @@ def _cell_infos(out_dir: str, pattern: str = "*") -> list[tuple[str, int, str, d
     infos = []
     for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", f"{pattern}.json"))):
         parts = path.split(os.sep)
-        with open(path) as f:
-            infos.append((parts[-3], int(parts[-2][len("seed"):]), os.path.splitext(parts[-1])[0], json.load(f)))
+        infos.append((parts[-3], int(parts[-2][len("seed"):]), os.path.splitext(parts[-1])[0],
+                      load_json_file(path, what="Atari cell info")))  # fmt: skip
     return infos
 
 
@@ -430,8 +430,7 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
     """
     rows: dict[str, list[dict]] = defaultdict(list)
     for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "phase2.json"))):
-        with open(path) as f:
-            rows[os.path.basename(os.path.dirname(os.path.dirname(path)))].append(json.load(f))
+        rows[os.path.basename(os.path.dirname(os.path.dirname(path)))].append(load_json_file(path, what="phase-2 info"))
     if not rows:
         return ""
     lines = [
