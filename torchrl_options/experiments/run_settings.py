@@ -17,6 +17,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from torchrl_options.checkpoints import CheckpointFileError, load_json_file, save_json_file
+from torchrl_options.checks import check_bool
 
 __all__ = [
     "check_run_settings",
@@ -150,6 +151,9 @@ def check_run_settings(
         ...
         ValueError: out_dir ... holds a run made with other settings: episodes: 200 there, 1000 now. ...
     """
+    if not isinstance(settings, Mapping):
+        raise TypeError(f"settings must be a mapping (e.g. OmegaConf.to_container(cfg)), got {type(settings).__name__}.")
+    check_bool(allow_changes, "allow_changes")
     os.makedirs(out_dir, exist_ok=True)
     now = flatten_settings(settings, ignore=ignore)
     recorded = read_run_settings(out_dir)

@@ -12,6 +12,7 @@ import torch
 from filelock import FileLock
 
 from torchrl_options.checkpoints import save_file, save_json_file, scoped_seed
+from torchrl_options.checks import check_int
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
 from torchrl_options.experiments.atari.config import AtariConfig
 from torchrl_options.experiments.atari.figures import write_option_frames
@@ -231,6 +232,10 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
         >>> option_usage(SimpleNamespace(replay_buffer=buf), num_actions=3)
         {'option_decision_share': 0.5, 'option_step_share': 0.8, 'mean_option_steps': 4.0}
     """
+    check_int(num_actions, "num_actions", minimum=1)
+    check_int(start, "start", minimum=0)
+    if not hasattr(agent, "replay_buffer"):
+        raise TypeError(f"option_usage expects an agent with a replay buffer (an OptionsDQN), got {type(agent).__name__}.")
     n = len(agent.replay_buffer)
     if n <= start:
         return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
