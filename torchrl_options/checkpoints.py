@@ -103,6 +103,8 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         torchrl_options.checkpoints.CheckpointFileError: ...state.pt: this checkpoint file is empty.
     """
     what = what[: -len(" file")] if what.endswith(" file") else what  # the messages say "... file" themselves
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or a path to the {what} file, got {type(path).__name__}.")
     path = Path(path)
     if not path.exists():
         raise MissingFileError(f"{os.fspath(path)}: no such {what} file.")

@@ -240,6 +240,8 @@ def trajectories_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "ar
         ...
         torchrl_options.segmentation.io.TrajectoryFileError: arrays: 'observations' is missing (found keys: ['actions']).
     """
+    if not isinstance(arrays, Mapping):
+        raise TypeError(f"{source}: arrays must be a mapping from the documented keys to arrays, got {type(arrays).__name__}.")
     if "observations" not in arrays and "observations_0" in arrays:
         arrays = _pad_ragged(arrays, source)
     for key in ("observations", "actions"):
@@ -526,7 +528,13 @@ def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: 
     missing = [k for k in ("observation", "action", ("next", "observation")) if k not in data.keys(include_nested=True)]
     if missing:
         raise ValueError(f"save_trajectories: data lacks {missing} (it needs observation, action, ('next', 'observation')).")
+    if reference_key is not None and not isinstance(reference_key, str):
+        raise TypeError(f"save_trajectories: reference_key must be a str or None, got {reference_key!r}.")
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"save_trajectories: path must be a str or a path, got {type(path).__name__}.")
     path = Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"save_trajectories: cannot write {path}: the folder {path.parent} does not exist.")
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".h5", ".hdf5", ".pt", ".pth"):
         data.save(path)
