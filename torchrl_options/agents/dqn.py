@@ -64,7 +64,8 @@ class DQNHyperParameters:
         num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
             ``parallel=True``) with the executor outside, evaluating the options once for all envs.
         parallel: batch the envs in a ``ParallelEnv`` instead of a ``SerialEnv``.
-        frames_per_batch: collector batch size.
+        frames_per_batch: collector batch size, a multiple of the number of envs (the collector steps them
+            together; another size would make larger batches than asked).
         buffer_size: replay buffer capacity, in decisions.
         batch_size: decisions per gradient step.
         learning_starts: decisions in the buffer before the first gradient step.
@@ -625,6 +626,8 @@ class OptionsDQN:
     ) -> TrainingLog:
         """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
 
+        The budget is counted in whole collector batches: ``total_frames`` is rounded up to a multiple of
+        ``config.frames_per_batch`` (which the envs fill exactly: see :class:`DQNHyperParameters`).
         ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints); when
         it returns ``True`` training stops there (e.g. after a number of episodes).
         Can be called again to continue training, also after :meth:`load_state_dict`.

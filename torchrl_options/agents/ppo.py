@@ -73,7 +73,8 @@ class OptionsPPOConfig:
         num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
             ``parallel=True``) with the executor outside.
         total_frames: training budget of :meth:`OptionsPPO.train`.
-        frames_per_batch: collector batch size (one PPO update per batch).
+        frames_per_batch: collector batch size (one PPO update per batch), a multiple of the number of envs (the
+            collector steps them together; another size would make larger batches than asked).
         num_epochs: passes over each batch's decisions.
         minibatch_size: decisions per gradient step (``None``: the whole batch).
         lr: Adam learning rate.

@@ -224,8 +224,8 @@ def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, ma
         >>> type(meta).__name__, metadata
         ('MetaControlMLP', {'K': 2})
     """
-    source = os.fspath(path)
     payload = load_file(path, what="options", map_location=map_location)
+    source = os.fspath(path)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
         raise ValueError(
             f"{source}: not an options file written by torchrl_options.save_options (expected format {_FORMAT!r}, "

@@ -261,8 +261,8 @@ def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata:
         >>> hierarchy.num_options, metadata
         ([3], {'seed': 0})
     """
-    source = os.fspath(path)
     payload = load_file(path, what="hierarchy", map_location=map_location)
+    source = os.fspath(path)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
         raise ValueError(
             f"{source}: not a hierarchy file written by torchrl_options save_hierarchy (expected format {_FORMAT!r}, "
