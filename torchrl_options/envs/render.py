@@ -158,7 +158,11 @@ def draw_trajectory(
         >>> int(image[5, 10].argmax())  # red, on the segment (0, 0) -> (0, 1)
         0
     """
-    points = _numpy(positions).reshape(-1, 2)
+    raw = _numpy(positions)
+    if raw.ndim != 2 or raw.shape[-1] != 2:
+        raise ValueError(f"positions must be [T, 2] (row, col) cells, got shape {list(raw.shape)}.")
+    check_int(cell_size, "cell_size", minimum=1)
+    points = raw.reshape(-1, 2)
     if len(points) == 0:
         return image
     thickness = max(cell_size // 8, 1) if thickness is None else thickness
