@@ -122,7 +122,7 @@ CASES = [
     ("restart_disagreement", "control: a NaN start is left out", lambda: restart_disagreement([-1.0, NAN, -1.0]), OK, None),
     # ---- save_options
     ("save_options", "not a module (an agent)", lambda: _save(3), TypeError, "options must be an options module (TensorDictModuleBase), got int"),
-    ("save_options", "a hand-written TensorDict module (cosmetic: 'a TensorDictModule')",
+    ("save_options", "a hand-written TensorDict module",
      lambda: _save(__import__("tensordict.nn", fromlist=["TensorDictModule"]).TensorDictModule(nn.Linear(2, 2), ["a"], ["b"])),
      ValueError, "cannot save a TensorDictModule by configuration"),
     ("save_options", "metadata that needs pickle", lambda: _save(OptionsMLP(2, 3, 2), metadata={"f": print}), TypeError,
