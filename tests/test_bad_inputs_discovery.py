@@ -143,12 +143,18 @@ CASES = [
     ("unique_rows", "control: one column", lambda: unique_rows([torch.tensor([1, 1, 2])]), OK, None),
 ]  # fmt: skip
 
-# change_points lives in discovery/initialization.py, which issue 51's refactor owns: its negative action is listed
-# for the lead (an xfail until that module checks it), not fixed here
+# change_points (discovery/initialization.py): a negative action used to be read as action 0
 NOT_HERE = [
-    pytest.param("change_points", "issue: action -1 read as action 0",
-                 lambda: change_points(torch.tensor([[-1, 0, 1, 1]]), torch.ones(1, 4, dtype=torch.bool), window=1),
-                 ValueError, "action", marks=pytest.mark.xfail(reason="discovery/initialization.py is issue 51's", strict=False)),
+    ("change_points", "issue: action -1 read as action 0",
+     lambda: change_points(torch.tensor([[-1, 0, 1, 1]]), torch.ones(1, 4, dtype=torch.bool), window=1),
+     ValueError, "discrete actions must be >= 0 at valid steps, got -1"),
+    ("change_points", "NaN continuous action",
+     lambda: change_points(torch.tensor([[[0.0], [float("nan")]]]), torch.ones(1, 2, dtype=torch.bool), window=1),
+     ValueError, "NaN or infinite"),
+    ("change_points", "bool actions", lambda: change_points(torch.ones(1, 4, dtype=torch.bool), torch.ones(1, 4, dtype=torch.bool)),
+     TypeError, "integer (or float) actions"),
+    ("change_points", "control: -1 under the mask",
+     lambda: change_points(torch.tensor([[0, 0, 1, -1]]), torch.tensor([[True, True, True, False]]), window=1), OK, None),
 ]  # fmt: skip
 
 
@@ -157,7 +163,7 @@ def test_discovery_bad_inputs(api, case, call, error, phrase):
     check(call, error, phrase)
 
 
-@pytest.mark.parametrize("api, case, call, error, phrase", NOT_HERE, ids=["change_points: issue: action -1"])
+@pytest.mark.parametrize("api, case, call, error, phrase", NOT_HERE, ids=ids(NOT_HERE))
 def test_discovery_bad_inputs_of_other_modules(api, case, call, error, phrase):
     check(call, error, phrase)
 
