@@ -38,6 +38,7 @@ import argparse
 import os
 import random
 import statistics
+import sys
 import time
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -137,6 +138,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     B, T = args.batch, args.steps
+    print(f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; command: python {' '.join(sys.argv)}")
     print(f"torch={torch.__version__} threads={torch.get_num_threads()} OMP_NUM_THREADS="
           f"{os.environ.get('OMP_NUM_THREADS', 'unset')}; floor pass: {_streaming_passes()[2]}")  # fmt: skip
     rows = []
