@@ -63,14 +63,32 @@ def unique_rows(columns: Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Te
             c = c.to(torch.int64)
         parts.append(c)
     mat = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
-    if mat.shape[1] == 1:
-        _, inverse = torch.unique(mat.squeeze(1), return_inverse=True)
-    else:
-        _, inverse = torch.unique(mat, dim=0, return_inverse=True)
+    inverse = _lexicographic_ranks(mat)
     num = int(inverse.max()) + 1 if n else 0
     first = torch.full((num,), n, dtype=torch.long, device=mat.device)
     first.scatter_reduce_(0, inverse, torch.arange(n, device=mat.device), "amin")
     return inverse, first
+
+
+def _lexicographic_ranks(mat: torch.Tensor) -> torch.Tensor:
+    """The rank of each row of an int64 ``[N, D]`` matrix among its distinct rows in lexicographic order: the
+    ``inverse`` of ``torch.unique(mat, dim=0, return_inverse=True)``, computed with one-dimensional ``unique`` calls
+    (columns ranked one at a time and folded into the running rank, which stays below ``N``), many times faster than
+    ``unique(dim=0)`` on CPU.
+
+    Examples:
+        >>> import torch
+        >>> mat = torch.tensor([[2, 1], [0, 5], [2, 1], [0, -3]])
+        >>> _lexicographic_ranks(mat).tolist() == torch.unique(mat, dim=0, return_inverse=True)[1].tolist()
+        True
+    """
+    _, rank = torch.unique(mat[:, 0], return_inverse=True)
+    for d in range(1, mat.shape[1]):
+        _, column = torch.unique(mat[:, d], return_inverse=True)
+        # both ranks are below N <= 2**31, so the pair's key fits an int64 and orders as (rank, column) does
+        key = rank * (int(column.max()) + 1 if column.numel() else 1) + column
+        _, rank = torch.unique(key, return_inverse=True)
+    return rank
 
 
 def _valid_rows(td: TensorDictBase, keys: Sequence[NestedKey], valid: torch.Tensor) -> TensorDictBase:
