@@ -11,7 +11,14 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from torchrl_options.checks import check_bool, check_choice, check_int, check_nested_key, check_number, check_positive_number
+from torchrl_options.checks import (
+    check_bool,
+    check_choice,
+    check_int,
+    check_nested_key,
+    check_number,
+    check_positive_number,
+)
 
 __all__ = [
     "ACTION_SPACES",

@@ -89,14 +89,23 @@ class TrajectoryStream:
     def read(self, rows: torch.Tensor) -> TensorDictBase:
         """Trajectories ``rows`` of the buffer as a checked ``[B, T]`` batch on the device."""
         data = self.reader.read(rows)
-        s = self.settings
         try:
-            check_step_data(data, obs_keys=s.obs_key_list, action_key=s.action_key, action_space=s.action_space,
-                            num_actions=self.num_actions)  # fmt: skip
+            self._check(data)
         except ValueError as err:
-            raise ValueError(f"the replay buffer's trajectories {rows[:8].tolist()}{'...' if rows.numel() > 8 else ''}: "
-                             f"{err}") from None  # fmt: skip
+            if rows.numel() == 1:
+                raise
+            for row in rows.tolist():  # name the buffer's trajectory (a rare path: the data is bad)
+                try:
+                    self._check(self.reader.read(torch.tensor([row])))
+                except ValueError as inner:
+                    raise ValueError(f"trajectory {row} of the replay buffer (read alone): {inner}") from None
+            raise err
         return data.to(self.device)
+
+    def _check(self, data: TensorDictBase) -> None:
+        s = self.settings
+        check_step_data(data, obs_keys=s.obs_key_list, action_key=s.action_key, action_space=s.action_space,
+                        num_actions=self.num_actions)  # fmt: skip
 
     def iteration_rows(self, generator: torch.Generator) -> torch.Tensor:
         """This process's trajectories of the next iteration: the shard, or ``batch_size`` of it drawn without
