@@ -372,6 +372,7 @@ GRIDWORLD = [
     ("dqn.gamma", 1.5, "dqn.gamma must be in [0, 1]"),
     ("dqn.lr", -1, "dqn.lr must be in (0, inf)"),
     ("dqn.batch_size", 0, "dqn.batch_size must be an int >= 1"),
+    ("dqn.frames_per_batch", 100, "dqn.frames_per_batch must be a multiple of num_envs (16), got 100"),
     ("dqn.hidden_sizes", [0], "dqn.hidden_sizes must be a list of ints >= 1"),
     ("dqn.warp_speed", 9, "dqn: unknown setting"),
     ("summary.final_window", 0, "summary.final_window must be an int >= 1"),

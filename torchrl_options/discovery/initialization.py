@@ -238,6 +238,16 @@ def change_points(
             f"change_points needs a [B, T] mask and [B, T, ...] actions, got mask {tuple(mask.shape)} and action "
             f"{tuple(action.shape)}."
         )
+    if not action.is_floating_point():
+        if action.dtype == torch.bool or action.is_complex():
+            raise TypeError(f"change_points: action must hold integer (or float) actions, got dtype {action.dtype}.")
+        if bool(mask.any()) and int(action[mask].min()) < 0:
+            raise ValueError(
+                f"change_points: discrete actions must be >= 0 at valid steps, got {int(action[mask].min())} "
+                "(a padding value such as -1 must sit under mask=False)."
+            )
+    elif bool(mask.any()) and not bool(torch.isfinite(action[mask]).all()):
+        raise ValueError("change_points: action holds NaN or infinite values at valid steps.")
     if num_actions is not None and not action.is_floating_point():
         top = int(action[mask].max()) + 1 if bool(mask.any()) else 0
         check_int(num_actions, "num_actions")

@@ -191,6 +191,7 @@ def _check_dqn(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"dqn.{err}") from None
     except ValueError as err:
         raise SettingError(f"dqn.{err}") from None
+    _check_frames_per_batch(cfg, "dqn")
 
 
 def _check_ppo(cfg: Mapping[str, Any]) -> None:
@@ -207,6 +208,18 @@ def _check_ppo(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"ppo.{err}") from None
     except ValueError as err:
         raise SettingError(f"ppo.{err}") from None
+    _check_frames_per_batch(cfg, "ppo")
+
+
+def _check_frames_per_batch(cfg: Mapping[str, Any], section: str) -> None:
+    """The recipes run ``num_envs`` grids in one batched env: a collector batch must be whole steps of all of them
+    (the agents refuse it too, but only once a cell starts)."""
+    frames, num_envs = cfg[section].get("frames_per_batch"), cfg.get("num_envs")
+    if isinstance(frames, int) and isinstance(num_envs, int) and num_envs >= 1 and frames % num_envs:
+        raise SettingError(
+            f"{section}.frames_per_batch must be a multiple of num_envs ({num_envs}), got {frames}: a batch holds whole "
+            "steps of every env."
+        )
 
 
 def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> None:

@@ -99,7 +99,11 @@ def check_forward_backward_inputs(
             raise ValueError(f"mask must be a bool tensor of shape [B, T] = {(B, T)}, got {_describe(mask)}.")
         if mask.shape != (B, T):
             raise ValueError(f"mask must have shape [B, T] = {(B, T)}, got {tuple(mask.shape)}.")
-        mask = mask.to(log_pi.device)
+        if mask.device != log_pi.device:
+            try:
+                mask = mask.to(log_pi.device)
+            except (NotImplementedError, RuntimeError):
+                raise ValueError(f"mask is on device {mask.device} but log_pi is on {log_pi.device}.") from None
         gaps = mask[:, 1:] & ~mask[:, :-1]
         if gaps.any():
             rows = gaps.any(1).nonzero().flatten().tolist()

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchrl_options.checks import check_same_device, check_tensor
 from torchrl_options.inference.semiring import chunked_forward_messages, end_factor, forward_messages, MAX, total
 from torchrl_options.inference.forward_backward import check_forward_backward_inputs
 
@@ -192,11 +193,28 @@ def most_likely_options(u: Tensor, mask: Tensor | None = None) -> Tensor:
         u (Tensor): ``[B, T, K]`` posterior marginals (from :func:`forward_backward`).
         mask (Tensor, optional): ``[B, T]`` bool.
 
+    Raises:
+        ValueError: ``u`` is not a ``[B, T, K]`` floating point tensor with ``K >= 1`` or holds NaN at a valid step;
+            ``mask`` is not a ``[B, T]`` bool tensor on ``u``'s device (``TypeError`` for a non-tensor).
+
     Examples:
         >>> import torch
         >>> most_likely_options(torch.tensor([[[0.9, 0.1], [0.2, 0.8]]]))
         tensor([[0, 1]])
     """
+    check_tensor(u, "u", ndim=3, dtype="floating", owner="most_likely_options")
+    B, T, K = u.shape
+    if K == 0:
+        raise ValueError("most_likely_options: u must hold K >= 1 options in its last dimension, got shape [B, T, 0].")
+    if mask is not None:
+        check_tensor(mask, "mask", shape=(B, T), dtype="bool", owner="most_likely_options")
+        check_same_device({"u": u, "mask": mask}, "most_likely_options")
+    bad = torch.isnan(u).any(-1)
+    if mask is not None:
+        bad = bad & mask
+    if bad.any():
+        b, t = bad.nonzero()[0].tolist()
+        raise ValueError(f"most_likely_options: u holds NaN at (b, t) = ({b}, {t}); the marginals must be numbers.")
     out = u.argmax(-1)
     if mask is not None:
         out = torch.where(mask, out, -1)

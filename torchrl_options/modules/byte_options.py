@@ -25,6 +25,7 @@ from torchrl_options.checks import check_int, check_positive_number
 from torchrl_options.modules._features import (
     activation_class,
     as_key_list,
+    check_module_keys,
     hidden_sizes,
     key_to_config,
     ObservationModule,
@@ -182,6 +183,7 @@ class OneHotByteOptions(ObservationModule):
             raise ValueError(f"out_keys must name two entries (option logits, termination logits), got {out_keys}.")
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
+        check_module_keys("OneHotByteOptions", self.in_keys, self.out_keys)
         self.num_bytes, self.num_actions, self.num_options = num_bytes, num_actions, num_options
         self.value_scale = float(value_scale)
         self.config = dict(

@@ -150,6 +150,10 @@ class AtariConfig(DQNHyperParameters):
                 isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
             ):
                 raise ValueError(f"{name} must be a non-empty list of ints >= 1, got {sizes!r}.")
+        from torchrl_options.checks import check_bool
+
+        for name in ("episodic_life", "clip_rewards", "vector_env", "fused_adam", "checkpoint_buffer", "option_frames"):
+            check_bool(getattr(self, name), name)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
@@ -243,6 +247,9 @@ def store_atari_config(group: str = "atari", name: str = "schema") -> None:
         >>> ConfigStore.instance().load("atari/schema.yaml").node.phase1_episodes
         1000
     """
+    for arg, value in (("group", group), ("name", name)):
+        if not isinstance(value, str) or not value:
+            raise TypeError(f"store_atari_config: {arg} must be a non-empty str, got {value!r}.")
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(group=group, name=name, node=AtariConfig)

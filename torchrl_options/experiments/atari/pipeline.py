@@ -3,7 +3,6 @@ demonstrations and DDO, shared by the conditions of a seed), phase 3 (each condi
 resumed cell the uninterrupted one, bit for bit. See :mod:`torchrl_options.experiments.atari`."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -13,7 +12,8 @@ import torch
 from filelock import FileLock
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_options.checkpoints import save_file, scoped_seed
+from torchrl_options.checkpoints import save_file, save_json_file, scoped_seed
+from torchrl_options.checks import check_int
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
 from torchrl_options.experiments.atari.config import AtariConfig
 from torchrl_options.experiments.atari.figures import write_option_frames
@@ -94,8 +94,11 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     from torchrl_options.discovery import discover_options, load_options, save_options
 
     path = os.path.join(seed_dir, "options.pt")
+    report = os.path.join(seed_dir, "phase2.json")
     if os.path.exists(path):
         options, _, metadata = load_options(path, with_meta_control=True)
+        if not os.path.exists(report):  # written before the options since issue 53; rewritten for older runs
+            save_json_file(metadata, report)
         return options, metadata
     t0 = time.time()
     demos = _greedy_rollouts(agent, game, config, seed, config.num_demonstrations, config.demo_max_steps)
@@ -142,9 +145,10 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         **_quality_gate(game, config, seed, demo_returns),
         "seconds": time.time() - t0,
     }
+    # the report first, then the options (both atomic): a run killed between them finds no options and redoes
+    # phase 2 (the same, from the seed), so the report always goes with the options it describes
+    save_json_file(metadata, report)
     save_options(options, path, metadata=metadata)
-    with open(os.path.join(seed_dir, "phase2.json"), "w") as f:
-        json.dump(metadata, f)
     logger.info("%s seed %d: DDO done, %s", game, seed, {k: v for k, v in metadata.items() if k != "demo_returns"})
     return options, metadata
 
@@ -242,6 +246,10 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
         >>> option_usage(SimpleNamespace(replay_buffer=buf), num_actions=3)
         {'option_decision_share': 0.5, 'option_step_share': 0.8, 'mean_option_steps': 4.0}
     """
+    check_int(num_actions, "num_actions", minimum=1)
+    check_int(start, "start", minimum=0)
+    if not hasattr(agent, "replay_buffer"):
+        raise TypeError(f"option_usage expects an agent with a replay buffer (an OptionsDQN), got {type(agent).__name__}.")
     n = len(agent.replay_buffer)
     if n <= start:
         return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
@@ -348,8 +356,7 @@ def _run_cell(cell: Cell, config: AtariConfig, out_dir: str) -> CellResult:
     info = {"seconds": time.time() - t0, "phase1_frames": p1_total, "demo_frames": metadata.get("demo_frames"), **phase3}
     if config.eval_every:
         info["evaluations"] = _cell_evaluations(cell.condition, phase1_agent, agent, n1, config.eval_every)
-    with open(os.path.join(seed_dir, f"{cell.condition}.json"), "w") as f:
-        json.dump(info, f)
+    save_json_file(info, os.path.join(seed_dir, f"{cell.condition}.json"))
     return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames], info=info)
 
 
