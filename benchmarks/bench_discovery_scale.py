@@ -64,16 +64,26 @@ def _rss_kib(field: str) -> int:
     return 0
 
 
-class _AnonPeak(threading.Thread):
-    """Samples the process's anonymous resident memory (``RssAnon``) every 20 ms and keeps the largest."""
+OVER_LIMIT = 3  # a cell's exit status when it was stopped at --max-gb
 
-    def __init__(self) -> None:
+
+class _AnonPeak(threading.Thread):
+    """Samples the process's anonymous resident memory (``RssAnon``) every 20 ms and keeps the largest; past
+    ``limit_gb`` it ends the process (exit status :data:`OVER_LIMIT`), so that a cell never takes a shared machine's
+    memory."""
+
+    def __init__(self, limit_gb: float | None = None) -> None:
         super().__init__(daemon=True)
         self.peak, self.running = 0, True
+        self.limit = None if limit_gb is None else int(limit_gb * 2**20)
 
     def run(self) -> None:
         while self.running:
             self.peak = max(self.peak, _rss_kib("RssAnon"))
+            if self.limit is not None and self.peak > self.limit:
+                print(f"stopped: anonymous resident memory {self.peak / 2**20:.2f} GB > --max-gb", file=sys.stderr,
+                      flush=True)  # fmt: skip
+                os._exit(OVER_LIMIT)
             time.sleep(0.02)
 
 
@@ -152,7 +162,7 @@ def _cell(args) -> None:
     path, steps = args.cell.split(",")
     steps = int(steps)
     after_import = _rss_kib("VmRSS")
-    anon = _AnonPeak()
+    anon = _AnonPeak(args.max_gb)
     anon.start()
     buffer = open_demonstrations(_data_path(Path(args.workdir), steps))
     handler = _Iterations()
@@ -186,15 +196,23 @@ def _table(args) -> None:
         _ensure_data(workdir, steps)
         for path in args.paths.split(","):
             if path == "memory" and steps > args.memory_limit:
-                rows.append(dict(path=path, steps=steps, skipped=True))
+                rows.append(dict(path=path, steps=steps, skipped=True,
+                                 why="not run: needs ~3 GB per 1M steps (--memory-limit)"))  # fmt: skip
                 print(f"{path} {steps}: not run (the in-memory path needs ~3 GB per 1M steps; --memory-limit)", flush=True)
                 continue
             iterations = args.big_iterations if steps >= 5_000_000 and path == "full" else args.iterations
             command = [sys.executable, __file__, "--cell", f"{path},{steps}", "--workdir", str(workdir),
                        "--iterations", str(iterations), "--threads", str(args.threads), "--batch", str(args.batch),
                        "--chunk", str(args.chunk)]  # fmt: skip
-            out = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-            row = json.loads(out.strip().splitlines()[-1])
+            command += ["--max-gb", str(args.max_gb)]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode == OVER_LIMIT:
+                rows.append(dict(path=path, steps=steps, skipped=True, why=f"stopped above {args.max_gb} GB"))
+                print(f"{path} {steps}: stopped above {args.max_gb} GB of anonymous resident memory", flush=True)
+                continue
+            if done.returncode != 0:
+                raise RuntimeError(f"cell {path},{steps} failed:\n{done.stderr[-4000:]}")
+            row = json.loads(done.stdout.strip().splitlines()[-1])
             rows.append(row)
             print(f"{path} {steps}: {row['per_iteration']:.3f} s/iteration, fixed {row['fixed']:.1f} s, peak RSS "
                   f"{row['peak_rss']:.2f} GB ({row['load']})", flush=True)  # fmt: skip
@@ -204,7 +222,7 @@ def _table(args) -> None:
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         if r.get("skipped"):
-            print(f"| {r['path']} | {r['steps']:,} | not run (memory) | | | | | | |")
+            print(f"| {r['path']} | {r['steps']:,} | {r.get('why', 'not run (memory)')} | | | | | | |")
             continue
         work = r["steps"] if r["path"] != "minibatch" else 2 * args.batch * LENGTH  # minibatch + evaluation set
         print(f"| {r['path']} | {r['steps']:,} | {r['iterations']} | {r['per_iteration']:.3f} | "
@@ -227,6 +245,8 @@ def _curve(args) -> None:
 
     steps = args.size
     path = _ensure_data(Path(args.workdir), steps)
+    anon = _AnonPeak(args.max_gb)
+    anon.start()
     buffer = open_demonstrations(path)
     reader = TrajectoryReader(buffer)
     data = reader.read(torch.arange(reader.num_trajectories))
@@ -274,6 +294,8 @@ def _curve(args) -> None:
             at = done[-1][0]
             cells.append(f"{sum(t <= at for t in times)}, {full_ll(done[-1][1]):.4f}")
         print(f"| {mark} | " + " | ".join(cells) + " |")
+    print(f"\npeak anonymous resident memory of this process (all paths, the data and the evaluation table): "
+          f"{anon.peak / 2**20:.2f} GB")
 
 
 def _ddp_worker(rank: int, world: int, init_file: str, path: str, settings: dict, out: str) -> None:
@@ -381,6 +403,7 @@ def main(argv=None) -> None:
     p.add_argument("--plan", action="store_true", help="communication against compute per iteration on 8-64 GPUs")
     p.add_argument("--step-cost", type=float, default=0.2, help="--plan: compute, us per step and iteration")
     p.add_argument("--m-steps-plan", type=int, default=5, help="--plan: all-reduces per iteration")
+    p.add_argument("--max-gb", type=float, default=5.5, help="stop a cell above this anonymous resident memory")
     p.add_argument("--cell", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     Path(args.workdir).mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,20 @@ def _worker(rank: int, init_file: str, path: str, out: str) -> None:
     try:
         buffer = open_demonstrations(path)  # every process opens the same files and reads its own shard
         results = {name: _result(discover_options(buffer, 2, distributed=True, **kw, **COMMON)) for name, kw in RUNS.items()}
+        # refused on every process alike, before any training collective: another seed, another buffer
+        refusals = {}
+        quick = dict(num_iterations=2, restarts=1, init="random", progress=False)
+        for case, call in (
+            ("seed", lambda: discover_options(buffer, 2, distributed=True, seed=rank, **quick)),
+            ("buffer", lambda: discover_options(open_demonstrations(f"{path}{'-short' if rank else ''}"), 2,
+                                                distributed=True, seed=0, **quick)),
+        ):  # fmt: skip
+            try:
+                call()
+                refusals[case] = None
+            except ValueError as err:
+                refusals[case] = str(err)
+        results["refusals"] = refusals
         with open(f"{out}/{rank}.json", "w") as f:
             json.dump(results, f)
     finally:
@@ -50,6 +64,7 @@ def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ddp")
     data = planted_corridor_demonstrations(8, 30, seed=0)
     write_demonstrations(demonstration_buffer(1000, path=tmp / "demos"), data)
+    write_demonstrations(demonstration_buffer(1000, path=tmp / "demos-short"), data[:6])
     mp.spawn(_worker, args=(str(tmp / "init"), str(tmp / "demos"), str(tmp)), nprocs=WORLD, join=True)
     ranks = [json.loads((tmp / f"{r}.json").read_text()) for r in range(WORLD)]
     single = {name: _result(discover_options(open_demonstrations(tmp / "demos"), 2, **kw, **COMMON))
@@ -61,6 +76,18 @@ def runs(tmp_path_factory):
 def test_the_processes_agree_bit_for_bit(runs, name):
     ranks, _ = runs
     assert ranks[0][name] == ranks[1][name]
+
+
+def test_processes_that_differ_are_refused_on_every_process(runs):
+    ranks, _ = runs
+    for rank, result in enumerate(ranks):
+        seed, buffer = result["refusals"]["seed"], result["refusals"]["buffer"]
+        assert seed is not None and buffer is not None, rank
+        assert "the 2 processes must stream the same replay buffer with the same settings" in seed
+        assert "seed (here %d, from 0 to 1 over the processes)" % rank in seed
+        expected = 6 if rank else 8
+        assert f"trajectories in the buffer (here {expected}, from 6 to 8 over the processes)" in buffer
+        assert f"steps in the buffer (here {expected * 30}, from 180 to 240" in buffer
 
 
 @pytest.mark.parametrize("name", ["full", "chunks"])

@@ -38,12 +38,13 @@ def _max_difference(a, b):
 
 
 def test_full_batch_streaming_is_the_in_memory_run_bit_for_bit(data, tmp_path):
-    """Default settings (segment starts, restarts, 5 G-steps, stopping rule, best iteration): one chunk holds every
-    trajectory, so the streamed run is the in-memory run."""
-    kw = dict(num_iterations=120, restart_iterations=20, seed=0, **QUIET)
+    """The defaults' machinery (segment starts, restarts chosen by likelihood, 5 G-steps, stopping rule, best
+    iteration): when the minibatch is the whole data set (one chunk holds every trajectory), the streamed run is
+    the in-memory run, bit for bit (torch.equal on every parameter, == on every record)."""
+    kw = dict(num_iterations=60, restarts=2, restart_iterations=15, seed=0, **QUIET)
     memory = discover_options(data, 2, **kw)
     streamed = discover_options(_buffer(data, tmp_path / "demos"), 2, **kw)
-    assert len(memory.restart_log_likelihoods) == 6
+    assert len(memory.restart_log_likelihoods) == 2
     assert streamed.restart_log_likelihoods == memory.restart_log_likelihoods
     assert [h["log_likelihood_per_step"] for h in streamed.history] == [h["log_likelihood_per_step"] for h in memory.history]
     assert _same_parameters(streamed.options, memory.options)
@@ -116,13 +117,22 @@ def test_the_evaluation_set_is_what_the_record_and_the_stopping_rule_read(data):
     assert final == pytest.approx(max(lls), abs=1e-5)
 
 
-def test_an_iteration_reads_no_more_than_its_minibatch_or_chunk(data, monkeypatch):
+def test_an_iteration_reads_no_more_than_its_minibatch_or_chunk_and_whole_trajectories(data, monkeypatch):
+    """Memory bounded by the minibatch: each read holds at most the minibatch's (or chunk's) trajectories, and each
+    of them whole (its valid steps are all the steps the buffer holds for it: the E-step is never cut)."""
+    data = data.clone()
+    lengths = torch.tensor([40, 13, 27, 40, 5, 33, 40, 40, 21, 9, 40, 17])
+    data[MASK] = torch.arange(40)[None] < lengths[:, None]
     reads = []
     original = TrajectoryReader.read
 
     def counting(self, rows):
-        reads.append(int(torch.as_tensor(rows).numel()))
-        return original(self, rows)
+        rows = torch.as_tensor(rows)
+        reads.append(int(rows.numel()))
+        out = original(self, rows)
+        assert torch.equal(out[MASK].sum(1), lengths[rows])  # whole trajectories, in the order asked
+        assert out.batch_size[1] == int(lengths[rows].max())  # padded to the longest read, not to the data set's
+        return out
 
     monkeypatch.setattr(TrajectoryReader, "read", counting)
     buffer = _buffer(data)

@@ -313,6 +313,10 @@ def write_demonstration_files(
     """
     from torchrl_options.segmentation.io import load_trajectories
 
+    if not isinstance(buffer, ReplayBuffer):
+        raise TypeError(f"buffer must be a TorchRL ReplayBuffer, got {type(buffer).__name__}.")
+    if isinstance(paths, (str, bytes, os.PathLike)) or not isinstance(paths, Iterable):
+        raise TypeError(f"paths must be an iterable of file paths (a list, even of one file), got {paths!r}.")
     total = 0
     for path in paths:
         total += write_demonstrations(buffer, load_trajectories(path, format=format), trajectory_key=trajectory_key)

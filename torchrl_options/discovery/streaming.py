@@ -26,6 +26,7 @@ evaluation set is also the door's sample: the data checks, the default modules' 
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import dataclass, field
 
@@ -142,6 +143,56 @@ def _probe(num: int, size: int, seed: int | None) -> torch.Tensor:
     return torch.randperm(num, generator=g)[:size].sort().values
 
 
+# what every process of a data-parallel run must share: the data set's size and the settings that decide the
+# collectives' number and order (a difference would hang a collective or silently train different modules)
+_SHARED = ("num_options", "num_iterations", "m_steps", "tol", "patience", "restarts", "restart_iterations",
+           "batch_size", "chunk_trajectories", "eval_trajectories", "lr", "seed", "init", "split_merge")  # fmt: skip
+
+
+def _code(value) -> float:
+    """A number standing for a setting's value, equal where the values are (``None``: -1.5, which no setting
+    takes; strings: 48 bits of their hash)."""
+    if value is None:
+        return -1.5
+    if isinstance(value, (bool, int, float)):
+        return float(value)
+    return float(int.from_bytes(hashlib.sha256(repr(value).encode()).digest()[:6], "big"))
+
+
+def check_same_run(group: SingleProcess, reader: TrajectoryReader, settings: DiscoverySettings,
+                   device: torch.device) -> None:  # fmt: skip
+    """Refuses, on every process alike (so that none is left waiting in a collective), a data-parallel run whose
+    processes do not see the same replay buffer (trajectories, steps) or were given different settings (those in
+    :data:`_SHARED`, which decide the number and order of the collectives and the steps taken).
+
+    Raises:
+        ValueError: naming what differs, with this process's value and the range over the processes.
+
+    Examples:
+        >>> from torchrl_options.data import demonstration_buffer, write_demonstrations
+        >>> from torchrl_options.testing import planted_corridor_demonstrations
+        >>> buffer = demonstration_buffer(100)
+        >>> _ = write_demonstrations(buffer, planted_corridor_demonstrations(2, 10))
+        >>> check_same_run(SingleProcess(), TrajectoryReader(buffer), DiscoverySettings(2), torch.device("cpu"))
+    """
+    mine = {"trajectories in the buffer": reader.num_trajectories, "steps in the buffer": reader.num_steps}
+    mine.update({name: getattr(settings, name) for name in _SHARED})
+    codes = torch.tensor([_code(v) for v in mine.values()], dtype=torch.float64, device=device)
+    high = group.max_(codes.clone())
+    low = -group.max_(-codes)
+    differ = []
+    for i, (name, value) in enumerate(mine.items()):
+        if low[i] != high[i]:
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+            spread = f", from {low[i].item():g} to {high[i].item():g} over the processes" if numeric else ""
+            differ.append(f"{name} (here {value!r}{spread})")
+    if differ:
+        raise ValueError(
+            f"distributed=True: the {group.world_size} processes must stream the same replay buffer with the same "
+            f"settings, but process {group.rank} sees them differ in {'; '.join(differ)}."
+        )
+
+
 def trajectory_stream(buffer: ReplayBuffer, settings: DiscoverySettings) -> tuple[TrajectoryStream, TensorDictBase]:
     """The door of streamed discovery: indexes the buffer's trajectories (:class:`~torchrl_options.data.
     TrajectoryReader`, refusing a wrong storage, missing ids and trajectories stored in pieces), joins the process
@@ -166,6 +217,10 @@ def trajectory_stream(buffer: ReplayBuffer, settings: DiscoverySettings) -> tupl
     """
     reader = TrajectoryReader(buffer, trajectory_key=settings.trajectory_key)
     group = DataParallel() if settings.distributed else SingleProcess()
+    device = settings.device
+    device = torch.device("cpu") if device is None else torch.device(device)
+    if group.world_size > 1:
+        check_same_run(group, reader, settings, device)
     rows = reader.shard(group.rank, group.world_size)
     num_actions = settings.num_actions
     if settings.action_space == "categorical":
@@ -194,8 +249,6 @@ def trajectory_stream(buffer: ReplayBuffer, settings: DiscoverySettings) -> tupl
             "not stay in memory: use m_steps=1 (Expectation-Gradient) with chunks, or give batch_size (minibatches) "
             "no larger than chunk_trajectories."
         )
-    device = settings.device
-    device = torch.device("cpu") if device is None else torch.device(device)
     generator = None
     if group.world_size > 1:
         seed = 0 if settings.seed is None else settings.seed
