@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from torchrl_options.discovery.fit import record_floats
 from torchrl_options.discovery.streaming import TrajectoryStream
 from torchrl_options.discovery.tabulated import TabulatedDDO
 
@@ -165,8 +166,8 @@ def fit_stream(
             optimizer.step()
         if scheduler is not None:
             scheduler.step()
-        if single and eval_table is None:  # the in-memory path's record, bit for bit
-            record = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in record.items()}
+        if single and eval_table is None:  # the in-memory path's record, bit for bit (one host synchronisation)
+            record = record_floats(record)
         else:
             record = _record(stats_sum, full)
         records.append(record)
@@ -193,16 +194,18 @@ def fit_stream(
 
 
 def _record(stats: torch.Tensor, full: bool) -> dict[str, float]:
-    n = float(stats[_N])
-    ll = float(stats[_LL]) / n
+    """The iteration's record from the summed statistics, read from the device in one synchronisation."""
+    values = stats.tolist()
+    n = values[_N]
+    ll = values[_LL] / n
     record = {
         "loss_ddo": -ll,
         "log_likelihood_per_step": ll,
-        "option_duration": n / float(stats[_STARTS]),
-        "option_entropy": float(stats[_ENTROPY]) / n,
-        "termination_probability": float(stats[_TERM]) / n,
+        "option_duration": n / values[_STARTS],
+        "option_entropy": values[_ENTROPY] / n,
+        "termination_probability": values[_TERM] / n,
     }
     if not full:
         record["minibatch_log_likelihood_per_step"] = ll
-        record["log_likelihood_per_step"] = float(stats[_EVAL_LL]) / float(stats[_EVAL_N])
+        record["log_likelihood_per_step"] = values[_EVAL_LL] / values[_EVAL_N]
     return record

@@ -98,6 +98,14 @@ def _lexicographic_ranks(mat: torch.Tensor) -> torch.Tensor:
     return rank
 
 
+def _changed(params: Sequence[torch.Tensor], snapshot: Sequence[torch.Tensor]) -> bool:
+    """Whether any parameter differs from its snapshot (as ``not torch.equal`` would say), in one host
+    synchronisation rather than one per parameter."""
+    if not params:
+        return False
+    return bool(torch.stack([torch.ne(p.detach(), s).any() for p, s in zip(params, snapshot)]).any())
+
+
 def _valid_rows(td: TensorDictBase, keys: Sequence[NestedKey], valid: torch.Tensor) -> TensorDictBase:
     return TensorDict({k: td.get(k)[valid] for k in keys}, batch_size=[int(valid.sum())], device=td.device)
 
@@ -480,7 +488,7 @@ class TabulatedDDO:
 
         def objective() -> torch.Tensor:
             forward = cached.pop() if cached else None
-            if forward is None or not all(torch.equal(p, s) for p, s in zip(params, snapshot)):
+            if forward is None or _changed(params, snapshot):
                 forward = self._forward()
             pi, term_logits, meta_logits = forward
             # zero counts times a -inf log-probability (an option that cannot take the action) contribute nothing
