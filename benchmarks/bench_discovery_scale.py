@@ -25,7 +25,8 @@ first iteration minus one iteration (checking, indexing, the door's sample, tabu
     python benchmarks/bench_discovery_scale.py --sizes 64000,1024000 --paths memory,minibatch --iterations 10
     python benchmarks/bench_discovery_scale.py --curve --seconds 60        # likelihood per wall-clock second, 1M
     python benchmarks/bench_discovery_scale.py --processes 1,2             # data-parallel iterations per second
-    python benchmarks/bench_discovery_scale.py --plan --step-cost 0.2       # communication vs compute, 8-64 GPUs
+    python benchmarks/bench_discovery_scale.py --plan                       # communication vs compute, 8-64 GPUs
+    python benchmarks/bench_discovery_scale.py --sizes 1024000 --device cuda  # the GPU path (benchmarks/gpu_check.sh)
 """
 from __future__ import annotations
 
@@ -143,7 +144,7 @@ def _ensure_data(workdir: Path, steps: int) -> Path:
 
 def _settings(path: str, args) -> dict:
     common = dict(num_iterations=args.iterations, restarts=1, init="random", tol=None, seed=0, progress=False,
-                  return_info=True, log_every=1)  # fmt: skip
+                  return_info=True, log_every=1, device=args.device)  # fmt: skip
     if path == "memory":
         return common
     if path == "full":
@@ -177,13 +178,16 @@ def _cell(args) -> None:
         result = discover_options(buffer, K, **_settings(path, args))
     total = time.perf_counter() - start
     anon.running = False
+    cuda = torch.device(args.device).type == "cuda"
     times = handler.times
     per = statistics.median(b - a for a, b in zip(times[:-1], times[1:])) if len(times) > 1 else times[0]
     print(json.dumps(dict(
         path=path, steps=steps, iterations=len(result.history), seconds=total, per_iteration=per,
         fixed=times[0] - per, peak_rss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         peak_anon=max(anon.peak, _rss_kib("RssAnon")) / 2**20, after_import=after_import / 2**20,
-        ll=result.final_log_likelihood_per_step, load=_load(),
+        ll=result.final_log_likelihood_per_step, load=_load(), device=args.device,
+        gpu_peak=torch.cuda.max_memory_allocated() / 2**30 if cuda else None,
+        card=torch.cuda.get_device_name() if cuda else None,
     )), flush=True)  # fmt: skip
 
 
@@ -191,7 +195,7 @@ def _table(args) -> None:
     sizes = [int(s) for s in args.sizes.split(",")]
     workdir = Path(args.workdir)
     rows = []
-    print(f"{os.cpu_count()} CPUs, {args.threads} thread(s), {_load()} at start", flush=True)
+    print(f"{os.cpu_count()} CPUs, {args.threads} thread(s), device {args.device}, {_load()} at start", flush=True)
     for steps in sizes:
         _ensure_data(workdir, steps)
         for path in args.paths.split(","):
@@ -203,7 +207,7 @@ def _table(args) -> None:
             iterations = args.big_iterations if steps >= 5_000_000 and path == "full" else args.iterations
             command = [sys.executable, __file__, "--cell", f"{path},{steps}", "--workdir", str(workdir),
                        "--iterations", str(iterations), "--threads", str(args.threads), "--batch", str(args.batch),
-                       "--chunk", str(args.chunk)]  # fmt: skip
+                       "--chunk", str(args.chunk), "--device", args.device]  # fmt: skip
             command += ["--max-gb", str(args.max_gb)]
             done = subprocess.run(command, capture_output=True, text=True)
             if done.returncode == OVER_LIMIT:
@@ -214,12 +218,14 @@ def _table(args) -> None:
                 raise RuntimeError(f"cell {path},{steps} failed:\n{done.stderr[-4000:]}")
             row = json.loads(done.stdout.strip().splitlines()[-1])
             rows.append(row)
+            gpu = "" if row.get("gpu_peak") is None else f", {row['card']} peak {row['gpu_peak']:.2f} GiB allocated"
             print(f"{path} {steps}: {row['per_iteration']:.3f} s/iteration, fixed {row['fixed']:.1f} s, peak RSS "
-                  f"{row['peak_rss']:.2f} GB ({row['load']})", flush=True)  # fmt: skip
+                  f"{row['peak_rss']:.2f} GB{gpu} ({row['load']})", flush=True)  # fmt: skip
     print()
+    gpu = args.device != "cpu"
     print(f"| path | steps | iterations | s per iteration | us per step and iteration | fixed cost [s] | peak RSS [GB] | "
-          f"peak anon [GB] | after import [GB] |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+          f"peak anon [GB] | after import [GB] |" + (" peak GPU allocated [GiB] |" if gpu else ""))  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if gpu else ""))
     for r in rows:
         if r.get("skipped"):
             print(f"| {r['path']} | {r['steps']:,} | {r.get('why', 'not run (memory)')} | | | | | | |")
@@ -227,7 +233,7 @@ def _table(args) -> None:
         work = r["steps"] if r["path"] != "minibatch" else 2 * args.batch * LENGTH  # minibatch + evaluation set
         print(f"| {r['path']} | {r['steps']:,} | {r['iterations']} | {r['per_iteration']:.3f} | "
               f"{r['per_iteration'] / work * 1e6:.3f} | {r['fixed']:.1f} | {r['peak_rss']:.2f} | {r['peak_anon']:.2f} | "
-              f"{r['after_import']:.2f} |")  # fmt: skip
+              f"{r['after_import']:.2f} |" + (f" {r['gpu_peak']:.2f} |" if gpu else ""))  # fmt: skip
     print("\nus per step and iteration: seconds per iteration over the steps an iteration reads (minibatch: the "
           f"{args.batch}-trajectory minibatch and the evaluation set of as many)")
 
@@ -344,9 +350,19 @@ def _processes(args) -> None:
                   flush=True)  # fmt: skip
 
 
+def _conv_flops(layers, size: int) -> int:
+    """Multiply-adds x 2 of a stack of (in, out, kernel, stride) convolutions on ``size`` x ``size`` frames."""
+    flops = 0
+    for c_in, c_out, k, stride in layers:
+        size = (size - k) // stride + 1
+        flops += 2 * size * size * c_out * c_in * k * k
+    return flops
+
+
 def _plan(args) -> None:
-    """Communication per iteration of data-parallel DDO on W GPUs (a model with assumed link figures, printed),
-    against compute per iteration at a measured cost per step."""
+    """Communication against compute per iteration of data-parallel DDO on W GPUs: each rank holds N / W steps;
+    per iteration it runs the E-step on them (the forward-backward messages and the networks' forward pass) and
+    ``m_steps`` G-steps (forward + backward), each G-step ending in one all-reduce of the parameters' gradients."""
     import math
 
     import torch.nn as nn
@@ -356,32 +372,47 @@ def _plan(args) -> None:
     def count(module):
         return sum(p.numel() for p in module.parameters())
 
+    m = args.m_steps_plan
+    nature = [(4, 32, 8, 4), (32, 64, 4, 2), (64, 64, 3, 1)]
     cnn = nn.Sequential(nn.Conv2d(4, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(), nn.Conv2d(64, 64, 3, 1),
                         nn.Flatten(), nn.Linear(3136, 512), nn.ReLU(), nn.Linear(512, 18 * K + K))  # fmt: skip
+    cnn_forward = _conv_flops(nature, 84) + 2 * (3136 * 512 + 512 * (18 * K + K))
+    mlp_small, mlp_ram = OptionsMLP(2, 2, K, num_cells=8), OptionsMLP(128, 18, K, num_cells=[64, 64])
+    # (name, parameters, forward FLOPs per step): an MLP's forward is ~2 FLOPs per weight and sample
     models = [
-        ("corridor MLP (K=8, 8 units)", count(OptionsMLP(2, 2, K, num_cells=8))),
-        ("Atari-RAM MLP (K=8, 128 in, 18 actions, [64, 64])", count(OptionsMLP(128, 18, K, num_cells=[64, 64]))),
-        ("Nature-CNN trunk, K=8 heads (84x84x4)", count(cnn)),
-        ("8 separate Nature-CNN options", 8 * count(cnn)),
+        ("corridor MLP (K=8, 8 units)", count(mlp_small), 2 * count(mlp_small)),
+        ("Atari-RAM MLP (K=8, [64, 64])", count(mlp_ram), 2 * count(mlp_ram)),
+        ("Nature-CNN trunk + K=8 heads, 84x84x4", count(cnn), cnn_forward),
+        ("8 separate Nature-CNN options", 8 * count(cnn), 8 * cnn_forward),
     ]
+    flops_per_s, e_bytes_per_s = args.gpu_tflops * 1e12, args.gpu_bandwidth * 1e12 / args.e_step_floor_ratio
+    e_step = 7 * K * 4 / e_bytes_per_s  # s per step: 4 inputs read, u, v, w written (float32), at the measured ratio
     links = {"intra": (5e-6, 200e9), "inter": (20e-6, 40e9)}  # (latency per hop [s], bus bandwidth [B/s])
-    print(f"model: all-reduce time = min(ring, tree); ring = 2 (W - 1) a + 2 (W - 1) / W * S / B, tree = 2 log2(W) a + "
-          f"2 S / B; W = 8 on one node (a = 5 us, B = 200 GB/s, NVLink), W >= 16 across nodes (a = 20 us, B = 40 GB/s, "
-          f"400 Gb/s InfiniBand per GPU): assumed figures, not measured here. {args.m_steps_plan} all-reduces per "
-          f"iteration (one per G-step). Compute: {args.step_cost} us per step and iteration.")  # fmt: skip
+    print(f"Assumed, not measured here: an all-reduce of S bytes over W GPUs takes min(ring, tree), ring = 2 (W - 1) a "
+          f"+ 2 (W - 1) / W * S / B, tree = 2 log2(W) a + 2 S / B; W = 8 in one node (a = 5 us, B = 200 GB/s, "
+          f"NVLink), W >= 16 across nodes (a = 20 us, B = 40 GB/s, 400 Gb/s InfiniBand per GPU); {m} all-reduces per "
+          f"iteration (one per G-step, float32 gradients). Compute per step and iteration: the networks' forward in "
+          f"the E-step and forward + backward (3x forward) in each of the {m} G-steps, (1 + 3 x {m}) x forward FLOPs, "
+          f"at {args.gpu_tflops:g} TFLOP/s; the E-step's messages at {args.e_step_floor_ratio:g}x their memory floor "
+          f"(7 x K x 4 B per step at {args.gpu_bandwidth:g} TB/s): {e_step * 1e9:.2f} ns per step at K = {K}. The "
+          f"MLP rows count the forward per step, an upper bound: the tabulated E-step evaluates distinct states "
+          f"only.")  # fmt: skip
     print()
-    print("| options | parameters | bytes per all-reduce | W | communication per iteration [ms] | steps per GPU for "
-          "communication = 10% of compute |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|")
-    for name, n in models:
+    print("| options | parameters | all-reduced per iteration | compute per step [ns] | W | communication per "
+          "iteration [ms] | steps per GPU for communication = 10% of compute | communication share at 10M steps "
+          "| at 50M steps |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, n, forward in models:
         size = 4 * n
+        per_step = (1 + 3 * m) * forward / flops_per_s + e_step
         for w in (8, 16, 32, 64):
             a, b = links["intra" if w <= 8 else "inter"]
             ring = 2 * (w - 1) * a + 2 * (w - 1) / w * size / b
             tree = 2 * math.log2(w) * a + 2 * size / b
-            t = args.m_steps_plan * min(ring, tree)
-            steps = 10 * t / (args.step_cost * 1e-6)
-            print(f"| {name} | {n:,} | {size / 1e6:.3f} MB | {w} | {t * 1e3:.2f} | {steps:,.0f} |")
+            t = m * min(ring, tree)
+            shares = [t / (t + total / w * per_step) for total in (10_000_000, 50_000_000)]
+            print(f"| {name} | {n:,} | {m * size / 1e6:.3f} MB | {per_step * 1e9:.1f} | {w} | {t * 1e3:.2f} | "
+                  f"{10 * t / per_step:,.0f} | {shares[0]:.1%} | {shares[1]:.1%} |")  # fmt: skip
 
 
 def main(argv=None) -> None:
@@ -401,8 +432,12 @@ def main(argv=None) -> None:
     p.add_argument("--snapshot-every", type=int, default=1, help="--curve: snapshot the modules every n iterations")
     p.add_argument("--processes", default=None, help="data-parallel iterations per second, e.g. 1,2")
     p.add_argument("--plan", action="store_true", help="communication against compute per iteration on 8-64 GPUs")
-    p.add_argument("--step-cost", type=float, default=0.2, help="--plan: compute, us per step and iteration")
+    p.add_argument("--gpu-tflops", type=float, default=100.0, help="--plan: the networks' effective TFLOP/s per GPU")
+    p.add_argument("--gpu-bandwidth", type=float, default=3.0, help="--plan: device memory TB/s (H100: ~3)")
+    p.add_argument("--e-step-floor-ratio", type=float, default=8.5,
+                   help="--plan: the E-step's time over its memory floor (8.5 on an H100, benchmarks/gpu_notes.md)")
     p.add_argument("--m-steps-plan", type=int, default=5, help="--plan: all-reduces per iteration")
+    p.add_argument("--device", default="cpu", help="the training device of the table's cells (cpu, cuda)")
     p.add_argument("--max-gb", type=float, default=5.5, help="stop a cell above this anonymous resident memory")
     p.add_argument("--cell", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
