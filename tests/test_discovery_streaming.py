@@ -50,6 +50,19 @@ def test_full_batch_streaming_is_the_in_memory_run_bit_for_bit(data, tmp_path):
     assert _same_parameters(streamed.options, memory.options)
 
 
+def test_a_minibatch_of_the_whole_data_set_is_the_full_batch(data):
+    """batch_size = every trajectory: each iteration's minibatch is the data set, so the streamed minibatch run
+    takes the in-memory full-batch steps bit for bit, and its evaluation set (all 12 trajectories) gives the
+    full batch's likelihood (== on every record)."""
+    kw = dict(num_iterations=20, restarts=1, init="random", seed=3, tol=None, **QUIET)
+    memory = discover_options(data, 2, **kw)
+    streamed = discover_options(_buffer(data), 2, batch_size=12, eval_trajectories=12, **kw)
+    assert _same_parameters(streamed.options, memory.options)
+    for a, b in zip(streamed.history, memory.history):
+        assert a["minibatch_log_likelihood_per_step"] == b["log_likelihood_per_step"]
+        assert a["log_likelihood_per_step"] == b["log_likelihood_per_step"]
+
+
 def test_padded_trajectories_of_different_lengths_stream_as_in_memory(data):
     data = data.clone()
     lengths = torch.tensor([40, 13, 27, 40, 5, 33, 40, 40, 21, 9, 40, 17])
