@@ -296,3 +296,34 @@ def test_kept_figures_are_quoted():
         assert figure.replace("+", "") in ppo, f"{figure} is not on docs/ppo.md"
         if " - " in name:
             assert figure.replace("+", "") in readme, f"{figure} is not in the README's results table"
+
+
+@pytest.mark.parametrize("folder, expected", [
+    ("four_rooms_paper_5000_A", "-0.063 [-0.118, -0.009]"),  # Adam 0.01: A declines from 1000 to 5000 episodes
+    ("four_rooms_A_lr1e-3", "+0.043 [-0.031, +0.118]"),  # Adam 0.001: it does not
+])
+def test_kept_long_run_of_actions_only(folder, expected):
+    """A after 5000 episodes minus A after 1000 (episodes 4900-5000 against 900-1000), paired by seed over the 15
+    seeds of the kept run, as docs/experiments/gridworld.md quotes it."""
+    import csv
+    import gzip
+    import os
+    from collections import defaultdict
+
+    from torchrl_options.experiments import mean_interval
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    returns = defaultdict(dict)
+    with gzip.open(os.path.join(root, "results", folder, "results.csv.gz"), "rt") as f:
+        for row in csv.DictReader(f):
+            if row["condition"] == "A":
+                returns[int(row["seed"])][int(row["episode"])] = float(row["return"])
+    assert len(returns) == 15 and all(len(r) >= 5000 for r in returns.values())
+
+    def window(r, start):
+        return sum(r[e] for e in range(start, start + 100)) / 100
+
+    diff = mean_interval([window(r, 4900) - window(r, 900) for r in returns.values()])
+    assert "%+.3f [%+.3f, %+.3f]" % diff == expected
+    with open(os.path.join(root, "docs", "experiments", "gridworld.md")) as f:
+        assert expected in f.read()
