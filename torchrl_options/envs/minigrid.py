@@ -23,7 +23,6 @@ made: importing this module needs the core dependencies alone.
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -279,10 +278,3 @@ def make_minigrid_env(
         env.set_seed(seed)
     return env
 
-
-def _levels_exist(levels: Sequence[str]) -> list[str]:
-    """The names in ``levels`` that are not registered (after importing minigrid)."""
-    _require_minigrid()
-    import gymnasium as gym
-
-    return [lv for lv in levels if lv not in gym.registry]

@@ -48,9 +48,9 @@ class GridConvOptions(ObservationModule):
     channels-first grid flattened, then extra features. With ``architecture="shared"`` (default) one convolutional
     torso feeds ``2K`` dense heads (K control, K termination), each with its own dense layers; with ``"separate"``
     each of the ``2K`` networks has its own filters too (one grouped convolution: on a CPU about 9 times the time
-    of the shared torso per pass over 2000 MiniGrid views, which is why it is not the default). Each network: ``len(conv_channels)`` valid 3x3 convolutions (``activation`` after each),
-    flattened, the extra features appended, then dense layers of ``num_cells`` units and the output (A logits, or
-    one termination logit).
+    of the shared torso per pass over 2000 MiniGrid views, which is why it is not the default). Each network:
+    ``len(conv_channels)`` valid 3x3 convolutions (``activation`` after each), flattened, the extra features
+    appended, then dense layers of ``num_cells`` units and the output (A logits, or one termination logit).
 
     Writes ``option_logits`` ``[..., K, A]`` and ``termination_logits`` ``[..., K]``, so it runs wherever options
     run (:func:`~torchrl_options.discover_options` with ``options=``, :class:`~torchrl_options.OptionExecutor`).

@@ -31,9 +31,9 @@ class MiniGridConfig:
     discovered from the bot on ``rl_level`` itself (same level), ``H1t`` actions + those discovered on
     ``transfer_source`` (transfer: an easier level's skills on a harder level). ``max_episode_steps`` cuts the RL
     episodes (``None``: the level's own limit, e.g. 72 steps on ``BabyAI-UnlockPickup-v0``, 576 on
-    ``BabyAI-UnlockLocal-v0``); a cell must end at least one episode in ``rl_frames`` frames. The options of a (level, seed) are
-    those of its segmentation cell when it has one (cached in ``<out_dir>/options/``), else discovered from
-    ``num_demonstrations`` demonstrations in the same way. PPO: :class:`~torchrl_options.agents.OptionsPPO` with
+    ``BabyAI-UnlockLocal-v0``); a cell must end at least one episode in ``rl_frames`` frames. The options of a
+    (level, seed) are those of its segmentation cell when it has one (cached in ``<out_dir>/options/``), else
+    discovered from ``num_demonstrations`` demonstrations in the same way. PPO: :class:`~torchrl_options.agents.OptionsPPO` with
     ``num_envs`` envs, ``frames_per_batch``, ``ppo_epochs``, ``ppo_minibatch``, ``lr``, ``entropy_coeff``,
     ``gamma``, ``hidden_sizes``; DQN: :class:`~torchrl_options.agents.OptionsDQN` with the same envs, ``lr``,
     ``gamma`` and ``hidden_sizes``, and ``dqn_eps_frames`` of linear epsilon annealing from 1 to 0.05.
@@ -92,24 +92,28 @@ class MiniGridConfig:
         check_number(self.entropy_coeff, "entropy_coeff", lo=0)
         check_number(self.gamma, "gamma", lo=0, hi=1)
         check_number(self.success_target, "success_target", lo=0, hi=1)
-        for name in ("segmentation_levels",):
-            levels = getattr(self, name)
-            if not isinstance(levels, (list, tuple)) or not all(isinstance(lv, str) and lv.startswith("BabyAI-") for lv in levels):
-                raise ValueError(f"{name} must be a list of BabyAI levels (the bot's), got {levels!r}.")
+        levels = self.segmentation_levels
+        if not isinstance(levels, (list, tuple)) or not all(isinstance(lv, str) and lv.startswith("BabyAI-")
+                                                            for lv in levels):  # fmt: skip
+            raise ValueError(f"segmentation_levels must be a list of BabyAI levels (the bot's), got {levels!r}.")
         for name in ("rl_level", "transfer_source"):
             value = getattr(self, name)
             if not isinstance(value, str) or not value.startswith(("BabyAI-", "MiniGrid-")):
                 raise ValueError(f"{name} must be a MiniGrid or BabyAI level id, got {value!r}.")
         if not self.transfer_source.startswith("BabyAI-"):
-            raise ValueError(f"transfer_source must be a BabyAI level (the bot demonstrates it), got {self.transfer_source!r}.")
+            raise ValueError(
+                f"transfer_source must be a BabyAI level (the bot demonstrates it), got {self.transfer_source!r}."
+            )
         conditions = list(self.conditions)
         allowed = [f"{a}-{k}" for a in ALGORITHMS for k in OPTION_CONDITIONS]
         bad = [c for c in conditions if c not in allowed]
         if bad or not conditions:
             raise ValueError(f"conditions must be a non-empty list of {allowed}, got {conditions!r}.")
         if any(c.endswith("-H1") for c in conditions) and not self.rl_level.startswith("BabyAI-"):
-            raise ValueError(f"an H1 condition discovers options on rl_level with the bot: it needs a BabyAI level, got "
-                             f"{self.rl_level!r} (use H1t, options from transfer_source).")
+            raise ValueError(
+                "an H1 condition discovers options on rl_level with the bot: it needs a BabyAI level, got "
+                f"{self.rl_level!r} (use H1t, options from transfer_source)."
+            )
         sizes = self.hidden_sizes
         if not isinstance(sizes, (list, tuple)) or not sizes or not all(
             isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes

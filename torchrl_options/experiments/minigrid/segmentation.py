@@ -87,9 +87,11 @@ def segmentation_cell(
 
     Returns:
         A dict of plain data: ``level``, ``seed``, ``method``, ``num_steps``, ``fit`` (the log-likelihood per step,
-        iterations, CPU seconds, DDO's warnings and option usage), and per granularity (``subgoal``, ``skill``) the
-        scores of ``ddo`` and of the baselines, and ``composition`` (what each option holds, against the subgoal
-        types and the skills).
+        iterations, CPU seconds, DDO's warnings and option usage), ``labels`` (the Viterbi option of every valid
+        step, one list per trajectory), ``action_agreement`` (the label accuracy of the options against the bot's
+        actions, best matching: 1 when the options are the actions renamed), and per granularity (``subgoal``,
+        ``skill``) the scores of ``ddo`` and of the baselines, and ``composition`` (what each option holds, against
+        the subgoal types and the skills).
     """
     from torchrl_options import discover_options, segment
     from torchrl_options.experiments.minigrid.demonstrations import bot_demonstrations, SKILLS, SUBGOAL_TYPES
@@ -131,6 +133,12 @@ def segmentation_cell(
             "option_usage": [float(u) for u in result.option_usage],
         },
     }
+    mask = data["collector", "mask"]
+    # the Viterbi labels of the valid steps, per trajectory, for analyses after the fact
+    out["labels"] = [seg.options[i, : int(mask[i].sum())].tolist() for i in range(mask.shape[0])]
+    actions = data["action"].reshape(mask.shape)
+    out["action_agreement"] = segmentation_scores(seg.options, data.clone(False).set("action_label", actions),
+                                                  label_key="action_label", switch_key="true_switch")["label_accuracy"]
     for name, (label_key, switch_key) in GRANULARITIES.items():
         scores = {"ddo": segmentation_scores(seg.options, data, label_key=label_key, switch_key=switch_key)}
         scores.update(baseline_scores(data, label_key=label_key, switch_key=switch_key, seed=seed))

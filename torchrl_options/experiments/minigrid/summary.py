@@ -11,8 +11,6 @@ import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-import numpy as np
-
 __all__ = [
     "append_record",
     "method_label",
@@ -140,21 +138,21 @@ def segmentation_markdown(records: Iterable[dict], granularity: str = "subgoal")
 
 def composition_markdown(records: Iterable[dict], granularity: str = "subgoal") -> str:
     """What the options held, per record: usage per option (sorted), boundary rate against the reference's, mean
-    segment length, and the reference labels merged into one option."""
+    segment length, the reference labels merged into one option, and how far the options are the bot's actions
+    renamed (``action_agreement``, when recorded)."""
     lines = ["| level | method | seed | usage per option | options used | boundary rate (reference) | mean segment "
-             "length (reference) | labels merged into one option |", "|---|---|---|---|---|---|---|---|"]
+             "length (reference) | labels merged into one option | agreement with the actions |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(records, key=lambda r: (r["level"], method_label(r["method"]), r["seed"])):
         comp = r[granularity]["composition"]
         ddo = r[granularity]["ddo"]
         usage = ", ".join(f"{u:.2f}" for u in sorted(comp["usage"], reverse=True))
         merged = "; ".join(" + ".join(g) for g in comp["merged"]) or "none"
+        agreement = f"{r['action_agreement']:.3f}" if "action_agreement" in r else "-"
         lines.append(
             f"| {r['level']} | {method_label(r['method'])} | {r['seed']} | {usage} | {comp['options_used']} | "
             f"{ddo['boundary_rate']:.3f} ({ddo['reference_rate']:.3f}) | {comp['mean_segment_length']:.1f} "
-            f"({comp['reference_mean_segment_length']:.1f}) | {merged} |"
+            f"({comp['reference_mean_segment_length']:.1f}) | {merged} | {agreement} |"
         )
     return "\n".join(lines) + "\n"
 
-
-def _mean(values: Sequence[float]) -> float:
-    return float(np.mean(values)) if len(values) else math.nan
