@@ -243,14 +243,15 @@ def test_segment_start_clones_terminations():
 
 def test_change_points_bad_arguments():
     action, mask = torch.zeros(1, 5, dtype=torch.long), torch.ones(1, 5, dtype=torch.bool)
-    for window in (0, -2, 1.5, True):
-        with pytest.raises(ValueError, match="window"):
+    for window, error in ((0, ValueError), (-2, ValueError), (1.5, TypeError), (True, TypeError)):
+        with pytest.raises(error, match="window"):
             change_points(action, mask, window=window)
-    for threshold in (0.0, 1.0, -1, float("nan"), "0.5"):
-        with pytest.raises(ValueError, match="threshold"):
+    for threshold, error in ((0.0, ValueError), (1.0, ValueError), (-1, ValueError), (float("nan"), ValueError),
+                             ("0.5", TypeError)):  # fmt: skip
+        with pytest.raises(error, match="threshold"):
             change_points(action, mask, threshold=threshold)
-    for num_actions in (0, 1.5):  # actions 0..1 need num_actions >= 2
-        with pytest.raises(ValueError, match="num_actions"):
+    for num_actions, error in ((0, ValueError), (1.5, TypeError)):  # actions 0..1 need num_actions >= 2
+        with pytest.raises(error, match="num_actions"):
             change_points(torch.tensor([[0, 1, 1, 0, 1]]), mask, num_actions=num_actions)
     with pytest.raises(ValueError, match="mask"):
         change_points(action, torch.ones(2, 5, dtype=torch.bool))
@@ -494,7 +495,7 @@ def test_lr_scheduler_is_stepped_once_per_iteration():
 )
 def test_bad_schedule_arguments_name_the_argument(kwargs, match):
     data = planted_corridor_demonstrations(2, 5)
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises((TypeError, ValueError), match=match):  # TypeError for a wrong type (1.5 steps, "small")
         discover_options(data, 2, progress=False, **kwargs)
 
 
@@ -512,7 +513,7 @@ def test_restarts_keep_the_best_start_and_continue_training_it(monkeypatch):
     """Restarts: each start gets ``restart_iterations``, the best by log-likelihood is kept and trained to
     ``num_iterations``. The first start is made to look best, so the continuation must train that start's
     networks (not the last start's) and the returned options must be the ones trained."""
-    import torchrl_options.discovery.discover as discover_module
+    import torchrl_options.discovery.stages as discover_module
 
     calls = []
     real_fit = discover_module.fit_ddo
@@ -682,7 +683,7 @@ def test_default_patience_depends_on_the_action_space(continuous):
     explicit = discover_options(data, 2, action_space=space, tol=1e9, patience=7, num_iterations=300, restarts=1,
                                 init="random", m_steps=1, seed=0, progress=False, return_info=True)  # fmt: skip
     assert len(explicit.history) == 8
-    with pytest.raises(ValueError, match="patience must be a positive int"):
+    with pytest.raises(ValueError, match="patience must be an int >= 1"):
         discover_options(data, 2, action_space=space, patience=0, progress=False)
 
 

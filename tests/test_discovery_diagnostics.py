@@ -77,7 +77,7 @@ def test_discover_options_reports_and_warns_about_duplicated_options(caplog):
             p[1] = p[0]
             p[2] = -p[0]  # option 2 prefers the other action and terminates where 0 continues: not a duplicate
     frozen = lambda params, lr: torch.optim.SGD(params, lr=0.0)  # noqa: E731
-    with caplog.at_level(logging.WARNING, logger="torchrl_options.discovery.discover"):
+    with caplog.at_level(logging.WARNING, logger="torchrl_options.discovery.stages"):
         result = discover_options(data, 3, options=options, optimizer=frozen, num_iterations=2, progress=False,
                                   return_info=True)  # fmt: skip
     assert result.duplicate_options == [(0, 1)]

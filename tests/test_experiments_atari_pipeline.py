@@ -54,3 +54,37 @@ def test_option_frame_strip_explains_itself(tmp_path):
     assert ax.get_title() == "Seaquest: option 1 of 3, its longest stretch as the most likely option"
     assert [t.get_text() for t in ax.get_xticklabels()] == ["4", "6", "9"] and ax.get_ylabel()
     assert "steps 4 to 9" in caption(fig) and "most likely at 12 of the 40 steps" in caption(fig)
+
+
+def test_ddo_starts_one_is_the_kept_protocol_and_defaults_a_factory():
+    """``ddo_starts="one"`` (the default, every kept run): one one-hot network drawn from the seed and one start;
+    ``"defaults"``: a factory of fresh networks, so that discovery gets its default starts."""
+    import torch
+    from tensordict import TensorDict
+
+    from torchrl_options import discover_options
+    from torchrl_options.experiments.atari.config import AtariConfig
+    from torchrl_options.experiments.atari.pipeline import _ddo_starts
+    from torchrl_options.modules import OneHotByteOptions
+
+    assert AtariConfig().ddo_starts == "one"
+    config = AtariConfig(options_num_cells=(4,))
+    one = _ddo_starts(config, 6, 3, 2, seed=0)
+    again = _ddo_starts(config, 6, 3, 2, seed=0)
+    assert one["restarts"] == 1 and isinstance(one["options"], OneHotByteOptions)
+    assert all(torch.equal(a, b) for a, b in zip(one["options"].parameters(), again["options"].parameters()))
+    assert _ddo_starts(AtariConfig(option_encoding="bytes"), 6, 3, 2, seed=0) == {"options": None, "restarts": 1}
+
+    defaults = _ddo_starts(AtariConfig(options_num_cells=(4,), ddo_starts="defaults"), 6, 3, 2, seed=0)
+    factory = defaults.pop("options_factory")
+    assert defaults == {} and isinstance(factory(), OneHotByteOptions)
+    a, b = factory().state_dict(), factory().state_dict()
+    assert not torch.equal(a["embedding.weight"], b["embedding.weight"])  # fresh at each call
+    g = torch.Generator().manual_seed(0)
+    ram = torch.randint(0, 256, (4, 11, 6), generator=g).float() / 255  # the RAM as the env gives it
+    demos = TensorDict({"observation": ram[:, :-1], "action": torch.randint(3, (4, 10), generator=g),
+                        "next": {"observation": ram[:, 1:]}}, [4, 10])  # fmt: skip
+    result = discover_options(demos, 2, options_factory=factory, num_actions=3, num_iterations=12, restart_iterations=2,
+                              tol=None, seed=0, progress=False, return_info=True)  # fmt: skip
+    assert len(result.restart_log_likelihoods) == 6  # the default segment starts
+    assert AtariConfig.from_dict({"ddo_starts": "defaults"}).ddo_starts == "defaults"

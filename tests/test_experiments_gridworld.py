@@ -1,4 +1,5 @@
 """The GridWorld per-cell pipeline: batched-env DQN, checkpoint resume, cached discovery, greedy trajectories."""
+import pytest
 import torch
 
 from torchrl_options.checkpoints import load_file
@@ -102,3 +103,37 @@ def test_condition_may_override_the_number_of_episodes(tmp_path):
     cfg["conditions"] = dict(A=dict(mode="actions", episodes=7), AO=dict(mode="both", meta_control="uniform"))
     assert len(run_gridworld_cell(Cell("supervised", "A", 0), cfg).returns) == 7
     assert len(run_gridworld_cell(Cell("supervised", "AO", 0), cfg).returns) == 4
+
+
+def test_greedy_trajectories_with_epsilon_take_random_actions_reproducibly():
+    env_cfg = dict(grid="four-rooms", task="apple", noise=0.0)
+
+    def run(epsilon=None):  # a fresh supervisor each time: it draws from its own seeded generator
+        policy = ValueIterationSupervisor(make_env(env_cfg, 1, 0), seed=0)
+        kwargs = {} if epsilon is None else {"epsilon": epsilon}
+        return greedy_trajectories(policy, env_cfg, num=8, length=50, seed=3, **kwargs)["action"]
+
+    assert torch.equal(run(), run(0.0))
+    assert torch.equal(run(0.5), run(0.5)) and not torch.equal(run(0.5), run())
+    # with epsilon 1 every action is uniform: all four appear about equally often, unlike the supervisor's
+    counts = torch.bincount(run(1.0).flatten(), minlength=4).float() / 400
+    assert bool((counts - 0.25).abs().max() < 0.06)
+    with pytest.raises(ValueError, match="epsilon"):
+        greedy_trajectories(lambda td: td, env_cfg, num=2, length=5, seed=0, epsilon=1.5)
+
+
+def test_agent_rollouts_keep_the_rewarded_pieces(tmp_path):
+    from torchrl_options.experiments.gridworld import _agent_rollouts, make_agent
+
+    cfg = _cfg(tmp_path)
+    cfg["env"] = dict(grid="four-rooms", task="apple", noise=0.3, max_steps=100)
+    agent = make_agent(cfg, "actions", 0)
+    rollouts = {"num": 16, "length": 100, "epsilon": 1.0}
+    everything = _agent_rollouts(agent, cfg, rollouts, seed=0)
+    pieces = _agent_rollouts(agent, cfg, {**rollouts, "keep": "rewarded"}, seed=0)
+    mask = pieces["collector", "mask"]
+    assert everything.shape == torch.Size([16, 100])
+    assert 0 < mask.sum() < everything["collector", "mask"].sum()
+    last = mask.sum(-1) - 1
+    assert bool((pieces["next", "reward"].squeeze(-1)[torch.arange(len(last)), last] > 0).all())
+    assert _agent_rollouts(agent, cfg, {**rollouts, "epsilon": "agent"}, seed=0).shape == torch.Size([16, 100])

@@ -287,7 +287,7 @@ def test_chunked_recomputes_rows_whose_float64_products_underflow():
     of the transfer matrix that end in option 0 fall more than 700 nats below the others. The chunked product
     flags that trajectory and the exact recursion redoes it."""
     from torchrl_options.hierarchy.inference import _forward_chunked
-    from torchrl_options.inference._semiring import SAFE_LOG
+    from torchrl_options.inference.semiring import SAFE_LOG
 
     B, T, A = 2, 200, 2
     action = torch.zeros(B, T, dtype=torch.long)

@@ -200,7 +200,7 @@ def test_option_suffixes_long_run_stays_finite():
 def test_option_suffixes_bad_input():
     with pytest.raises(ValueError, match="no .*option_decision.* entry"):
         option_suffix_transitions(two_envs().exclude(("next", "option_decision")), 0.9, action_offset=2)
-    with pytest.raises(ValueError, match="gamma must lie in"):
+    with pytest.raises(ValueError, match="gamma must be a number in"):
         option_suffix_transitions(two_envs(), 1.5, action_offset=2)
     with pytest.raises(ValueError, match="time dimension"):
         option_suffix_transitions(two_envs()[0, 0], 0.9, action_offset=2)

@@ -430,9 +430,13 @@ def test_ddo_m_steps_reaches_discovery_and_fits_closer(tmp_path, monkeypatch):
     assert seen == [1, 8]
     assert fits[8] > fits[1] + 0.05, fits  # the same demonstrations and E-steps, 8 G-steps each: a closer fit
     assert _config(["preset=smoke", "atari.ddo_m_steps=4"]).atari.ddo_m_steps == 4
-    for bad in (0, 1.5, True):  # refused when the settings are read, not after phase 1
-        with pytest.raises(ValueError, match="ddo_m_steps must be a positive int"):
+    for bad, error in ((0, ValueError), (1.5, TypeError), (True, TypeError)):  # refused when the settings are read
+        with pytest.raises(error, match="ddo_m_steps must be an int"):
             AtariConfig.from_dict({"ddo_m_steps": bad})
+    assert _config(["preset=faithful-cpu"]).atari.ddo_starts == "one"  # the kept runs: one start
+    assert _config(["preset=smoke", "atari.ddo_starts=defaults"]).atari.ddo_starts == "defaults"
+    with pytest.raises(ValueError, match="ddo_starts must be one of \\('one', 'defaults'\\), got 'many'"):
+        AtariConfig.from_dict({"ddo_starts": "many"})
 
 
 def test_agent_config_takes_the_shared_settings_by_name():

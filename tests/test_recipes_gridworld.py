@@ -227,3 +227,35 @@ def test_two_rooms_ao_diagnostic(tmp_path):
         for _, ret, share, q_primitive, q_option in rows:
             assert 0.0 <= ret <= 1.0 and 0.0 <= share <= 1.0
             assert torch.isfinite(torch.tensor([q_primitive, q_option])).all()
+
+
+@pytest.mark.parametrize("name", ["four_rooms", "three_rooms"])
+def test_protocol_paper_gives_back_the_paper_settings(name, tmp_path):
+    """``protocol=paper`` resolves to the DDO keyword arguments and rollouts that the recipes ran before the
+    measured defaults (PAPER_SETTINGS with the recipe's batch size and iterations; 100 greedy rollouts, all kept),
+    and the default protocol to discover_options' own defaults on the agent's rewarded one-episode rollouts."""
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments.gridworld import _discovery_iterations, _discovery_kwargs, apply_protocol
+
+    def resolved(*overrides):
+        with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+            cfg = compose(config_name=name, overrides=["scale=paper", f"out_dir={tmp_path}", *overrides])
+        return apply_protocol(OmegaConf.to_container(cfg, resolve=True))
+
+    paper, ours = resolved("protocol=paper"), resolved()
+    batch = {"four_rooms": 10, "three_rooms": 20}[name]
+    assert _discovery_kwargs(paper["discovery"]) == dict(
+        num_actions=4, num_cells=2, activation="tanh", init="random", batch_size=batch, lr=0.01, m_steps=1,
+        restarts=1, tol=None,
+    )  # fmt: skip
+    assert _discovery_iterations(paper["discovery"]) == 500
+    assert paper["settings"]["exploration"]["greedy"]["epsilon"] == 0.0
+    assert paper["settings"]["exploration"]["greedy"]["keep"] == "all"
+    assert paper["settings"]["exploration"]["greedy"]["num"] == 100
+    assert _discovery_kwargs(ours["discovery"]) == {"num_actions": 4}  # everything else: discover_options' defaults
+    assert _discovery_iterations(ours["discovery"]) == 1000
+    assert ours["settings"]["exploration"]["greedy"] == {"num": 1000, "length": 100, "epsilon": "agent", "keep": "rewarded"}
+    assert "paper" not in ours["discovery"] and "paper" not in ours["settings"]["exploration"]
+    with pytest.raises(ValueError, match="protocol must be one of"):
+        resolved("protocol=faithful")

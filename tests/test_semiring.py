@@ -1,4 +1,4 @@
-"""The one semiring-parameterised scan (``inference/_semiring.py``) against brute-force enumeration: log-sum-exp
+"""The one semiring-parameterised scan (``inference/semiring.py``) against brute-force enumeration: log-sum-exp
 gives the likelihood and, by autograd, the marginals; max-plus gives the Viterbi score and, by autograd, the best
 latent sequence, which :func:`viterbi`'s backpointers and the reference forward-backward must agree with."""
 import pytest
@@ -6,7 +6,7 @@ import torch
 
 from _enumeration import latent_sequences
 from torchrl_options.inference import forward_backward, viterbi
-from torchrl_options.inference._semiring import chunked_forward_messages, forward_messages, LOG, MAX, scan_score
+from torchrl_options.inference.semiring import chunked_forward_messages, forward_messages, LOG, MAX, scan_score
 
 
 def _inputs(B, T, K, seed):

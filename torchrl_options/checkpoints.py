@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import functools
 import inspect
+import json
 import os
 import pickle
 import random
@@ -33,6 +34,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_options.checks import with_article
+
 __all__ = [
     "CheckpointFileError",
     "MissingFileError",
@@ -46,6 +49,8 @@ __all__ = [
     "restores_global_rng",
     "scoped_seed",
     "convert_file",
+    "load_json_file",
+    "save_json_file",
 ]
 
 _TD_FORMAT = "torchrl_options.tensordict/1"
@@ -73,7 +78,8 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         path (str or PathLike): the file.
 
     Keyword Args:
-        what (str): what the file should be, for the error messages (e.g. ``"DQN checkpoint"``).
+        what (str): what the file should be, for the error messages (e.g. ``"DQN checkpoint"``; a trailing
+            ``" file"`` is dropped: the messages add it).
         map_location: passed to :func:`torch.load`.
 
     Returns:
@@ -96,11 +102,14 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
         ...
         torchrl_options.checkpoints.CheckpointFileError: ...state.pt: this checkpoint file is empty.
     """
+    what = what[: -len(" file")] if what.endswith(" file") else what  # the messages say "... file" themselves
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or a path to the {what} file, got {type(path).__name__}.")
     path = Path(path)
     if not path.exists():
         raise MissingFileError(f"{os.fspath(path)}: no such {what} file.")
     if path.is_dir():
-        raise CheckpointFileError(f"{os.fspath(path)}: expected a {what} file, got a directory.")
+        raise CheckpointFileError(f"{os.fspath(path)}: expected {with_article(what)} file, got a directory.")
     if path.stat().st_size == 0:
         raise CheckpointFileError(f"{os.fspath(path)}: this {what} file is empty.")
     try:
@@ -115,7 +124,7 @@ def load_file(path: str | os.PathLike, *, what: str = "checkpoint", map_location
             found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
             name = f"it needs {found.group(1)}" if found else "not plain data"
             raise CheckpointFileError(
-                f"{os.fspath(path)}: refusing to load this {what}: it holds Python objects that only pickle can "
+                f"{os.fspath(path)}: refusing to load this {what} file: it holds Python objects that only pickle can "
                 f"rebuild ({name}), and unpickling a file can run code. {_convert_hint(path)}"
             ) from None
         raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file (corrupt: {err}).") from None
@@ -141,6 +150,55 @@ def save_file(obj: Any, path: str | os.PathLike) -> None:
     """
     with atomic_replace(path) as tmp:
         torch.save(obj, tmp)
+
+
+def save_json_file(obj: Any, path: str | os.PathLike, **dump_kwargs: Any) -> None:
+    """``json.dump`` through :func:`atomic_replace`: a run killed while writing leaves the old file or none.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "info.json")
+        >>> save_json_file({"seconds": 3.5}, path)
+        >>> load_json_file(path, what="cell info")
+        {'seconds': 3.5}
+    """
+    with atomic_replace(path) as tmp, open(tmp, "w") as f:
+        json.dump(obj, f, **dump_kwargs)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def load_json_file(path: str | os.PathLike, *, what: str = "JSON") -> Any:
+    """Reads a JSON file, naming the file in the error when it is missing, empty or not valid JSON.
+
+    Raises:
+        MissingFileError: the file does not exist.
+        CheckpointFileError: the file is empty, truncated or not JSON.
+
+    Examples:
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "settings.json")
+        >>> _ = open(path, "w").write('{"episodes": 2')
+        >>> load_json_file(path, what="run settings")
+        Traceback (most recent call last):
+        ...
+        torchrl_options.checkpoints.CheckpointFileError: ...settings.json: not a readable run settings file (expected JSON: Expecting ',' delimiter: line 1 column 15 (char 14)).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise MissingFileError(f"{os.fspath(path)}: no such {what} file.")
+    if path.is_dir():
+        raise CheckpointFileError(f"{os.fspath(path)}: expected {with_article(what)} file, got a directory.")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file ({type(err).__name__}: {err}).") from None
+    if not text.strip():
+        raise CheckpointFileError(f"{os.fspath(path)}: this {what} file is empty (expected JSON).")
+    try:
+        return json.loads(text)
+    except ValueError as err:
+        raise CheckpointFileError(f"{os.fspath(path)}: not a readable {what} file (expected JSON: {err}).") from None
 
 
 @contextlib.contextmanager

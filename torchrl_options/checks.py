@@ -20,17 +20,33 @@ import numbers
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+import torch
 from tensordict.utils import NestedKey, unravel_key
 
 __all__ = [
     "check_bool",
+    "check_callable",
     "check_choice",
     "check_distinct_keys",
     "check_int",
     "check_nested_key",
     "check_number",
+    "check_numbers",
     "check_positive_number",
+    "check_same_device",
+    "check_tensor",
+    "with_article",
 ]
+
+
+def with_article(phrase: str) -> str:
+    """``phrase`` after "a" or "an", as its first letter asks ("an OptionsPPO checkpoint", "a bool tensor").
+
+    Examples:
+        >>> with_article("OptionsPPO checkpoint"), with_article("hierarchy"), with_article("integer tensor")
+        ('an OptionsPPO checkpoint', 'a hierarchy', 'an integer tensor')
+    """
+    return f"{'an' if phrase[:1].lower() in 'aeiou' else 'a'} {phrase}"
 
 
 def check_int(
@@ -199,3 +215,141 @@ def check_distinct_keys(keys: Mapping[str, Any], owner: str, *, allow_same: Iter
                     "Give them different keys."
                 )
     return out
+
+
+def check_numbers(
+    values: Any,
+    name: str,
+    *,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    allow_empty: bool = True,
+    allow_nan: bool = False,
+) -> list[float]:
+    """Returns ``values`` (a sequence of real numbers, or a 1-D tensor / array of them) as a list of floats; refuses
+    another type (``TypeError``) and an entry that is NaN (unless ``allow_nan``) or outside ``[lo, hi]``
+    (``ValueError`` naming its index).
+
+    Examples:
+        >>> check_numbers([0.5, 0.5], "usage", lo=0, hi=1)
+        [0.5, 0.5]
+        >>> check_numbers([0.5, float("nan"), 0.5], "usage", lo=0, hi=1)
+        Traceback (most recent call last):
+        ...
+        ValueError: usage[1] must be a number in [0, 1], got nan.
+        >>> check_numbers("0.5", "usage")
+        Traceback (most recent call last):
+        ...
+        TypeError: usage must be a sequence of numbers, got '0.5' (str).
+    """
+    if isinstance(values, torch.Tensor):
+        if values.ndim != 1 or values.is_complex():
+            raise TypeError(f"{name} must be a sequence of numbers (1-D), got a tensor of shape {tuple(values.shape)}.")
+        values = values.tolist()
+    elif hasattr(values, "tolist") and getattr(values, "ndim", None) == 1:  # a 1-D numpy array
+        values = values.tolist()
+    if isinstance(values, (str, bytes)) or not isinstance(values, Sequence):
+        raise TypeError(f"{name} must be a sequence of numbers, got {values!r} ({type(values).__name__}).")
+    if not allow_empty and len(values) == 0:
+        raise ValueError(f"{name} must not be empty.")
+    out = []
+    for i, v in enumerate(values):
+        if not (allow_nan and isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isnan(v)):
+            check_number(v, f"{name}[{i}]", lo=lo, hi=hi)
+        out.append(float(v))
+    return out
+
+
+def check_callable(value: Any, name: str, *, allow_none: bool = False, what: str = "a callable") -> None:
+    """Refuses what cannot be called (``TypeError``).
+
+    Examples:
+        >>> check_callable(print, "callback")
+        >>> check_callable(3, "callback", allow_none=True)
+        Traceback (most recent call last):
+        ...
+        TypeError: callback must be a callable or None, got 3 (int).
+    """
+    if value is None and allow_none:
+        return
+    if not callable(value):
+        raise TypeError(f"{name} must be {what}{' or None' if allow_none else ''}, got {value!r} ({type(value).__name__}).")
+
+
+_KINDS = {
+    "floating": (lambda t: t.is_floating_point(), "floating point"),
+    "integer": (lambda t: not t.is_floating_point() and not t.is_complex() and t.dtype != torch.bool, "integer"),
+    "bool": (lambda t: t.dtype == torch.bool, "bool"),
+}
+
+
+def check_tensor(
+    value: Any,
+    name: str,
+    *,
+    ndim: int | Sequence[int] | None = None,
+    shape: Sequence[int | None] | None = None,
+    dtype: str | Sequence[str] | None = None,
+    nonempty: bool = False,
+    owner: str | None = None,
+) -> torch.Tensor:
+    """Returns ``value`` if it is a ``torch.Tensor`` of the given number of dimensions, shape (``None``: any size in
+    that dimension), kind of dtype (``"floating"``, ``"integer"``, ``"bool"`` or a tuple of them) and, with
+    ``nonempty``, at least one element; refuses anything else, naming the argument (``TypeError`` for a non-tensor,
+    ``ValueError`` otherwise).
+
+    Examples:
+        >>> check_tensor(torch.zeros(2, 3), "u", ndim=2, dtype="floating").shape
+        torch.Size([2, 3])
+        >>> check_tensor(torch.zeros(2, 3), "u", ndim=3)
+        Traceback (most recent call last):
+        ...
+        ValueError: u must be a 3-dimensional tensor, got shape [2, 3].
+        >>> check_tensor(torch.zeros(2, 3), "mask", shape=(2, 4), dtype="bool")
+        Traceback (most recent call last):
+        ...
+        ValueError: mask must have shape [2, 4], got shape [2, 3].
+    """
+    where = f"{owner}: " if owner else ""
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{where}{name} must be a torch.Tensor, got {type(value).__name__}.")
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+        if value.ndim not in allowed:
+            dims = " or ".join(str(d) for d in allowed)
+            raise ValueError(f"{where}{name} must be {with_article(dims + '-dimensional tensor')}, got shape {list(value.shape)}.")
+    if shape is not None:
+        if value.ndim != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+            want = ", ".join("*" if s is None else str(s) for s in shape)
+            raise ValueError(f"{where}{name} must have shape [{want}], got shape {list(value.shape)}.")
+    if dtype is not None:
+        kinds = (dtype,) if isinstance(dtype, str) else tuple(dtype)
+        if not any(_KINDS[k][0](value) for k in kinds):
+            names = " or ".join(_KINDS[k][1] for k in kinds)
+            raise ValueError(f"{where}{name} must be {with_article(names + ' tensor')}, got dtype {value.dtype}.")
+    if nonempty and value.numel() == 0:
+        raise ValueError(f"{where}{name} must not be empty, got shape {list(value.shape)}.")
+    return value
+
+
+def check_same_device(tensors: Mapping[str, Any], owner: str | None = None) -> None:
+    """Refuses tensors (``{argument name: tensor or None}``) that are not all on one device (``ValueError`` naming
+    two of them); ``None`` entries are skipped.
+
+    Examples:
+        >>> check_same_device({"u": torch.zeros(1), "mask": torch.zeros(1, device="meta")}, "most_likely_options")
+        Traceback (most recent call last):
+        ...
+        ValueError: most_likely_options: mask is on device meta but u is on device cpu; put them on one device.
+    """
+    first = None
+    for name, t in tensors.items():
+        if t is None:
+            continue
+        if first is None:
+            first = (name, t.device)
+        elif t.device != first[1]:
+            where = f"{owner}: " if owner else ""
+            raise ValueError(
+                f"{where}{name} is on device {t.device} but {first[0]} is on device {first[1]}; put them on one device."
+            )

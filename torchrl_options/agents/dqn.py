@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
@@ -36,6 +37,7 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
+from torchrl_options.checks import check_bool, check_callable, check_int, check_nested_key
 from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.smdp import SMDPTransitions
@@ -62,7 +64,8 @@ class DQNHyperParameters:
         num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
             ``parallel=True``) with the executor outside, evaluating the options once for all envs.
         parallel: batch the envs in a ``ParallelEnv`` instead of a ``SerialEnv``.
-        frames_per_batch: collector batch size.
+        frames_per_batch: collector batch size, a multiple of the number of envs (the collector steps them
+            together; another size would make larger batches than asked).
         buffer_size: replay buffer capacity, in decisions.
         batch_size: decisions per gradient step.
         learning_starts: decisions in the buffer before the first gradient step.
@@ -108,21 +111,49 @@ class DQNHyperParameters:
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.checks import check_int
-
         if self.discount_per not in ("step", "decision"):
             raise ValueError(f"discount_per must be one of ('step', 'decision'), got {self.discount_per!r}.")
         for name, minimum in (("num_envs", 1), ("frames_per_batch", 1), ("buffer_size", 1), ("batch_size", 1),
                               ("learning_starts", 0), ("updates_per_batch", 0), ("eps_annealing_frames", 0),
                               ("hard_update_interval", 1)):  # fmt: skip
             check_int(getattr(self, name), name, minimum=minimum)
+        check_frames_per_batch(self.frames_per_batch, self.num_envs, "num_envs")
         for name, hi in (("lr", math.inf), ("gamma", 1), ("eps_init", 1), ("eps_end", 1)):
             _check_number(self, name, 0, hi, lo_open=name == "lr", hi_open=name == "lr")
+        for name in ("parallel", "double_dqn"):
+            check_bool(getattr(self, name), name)
         sizes = self.hidden_sizes
         if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
             isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
         ):
             raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
+        check_device(self.device, "device")
+
+
+def check_frames_per_batch(frames_per_batch: int, num_envs: int, what: str) -> None:
+    """Refuses a collector batch that the envs cannot fill exactly: TorchRL's collector steps all ``num_envs`` envs
+    together and rounds ``frames_per_batch`` up to a multiple of them, so a budget would be overrun silently (3 envs
+    and 10 frames per batch collect 12)."""
+    if frames_per_batch % num_envs:
+        low = frames_per_batch // num_envs * num_envs
+        hint = f"{low} or {low + num_envs}" if low else f"{num_envs}"
+        raise ValueError(
+            f"frames_per_batch must be a multiple of the number of envs ({what}={num_envs}): the collector steps the "
+            f"envs together and would collect {low + num_envs} frames per batch, not {frames_per_batch}; got "
+            f"frames_per_batch={frames_per_batch} (use e.g. {hint})."
+        )
+
+
+def check_device(device: Any, name: str) -> None:
+    """Refuses what ``torch.device`` cannot read (``"cpu"``, ``"cuda:0"``, a ``torch.device``)."""
+    if isinstance(device, torch.device):
+        return
+    if not isinstance(device, str):
+        raise TypeError(f"{name} must be a device name such as 'cpu' or 'cuda:0', got {device!r} ({type(device).__name__}).")
+    try:
+        torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{name} must be a device name such as 'cpu' or 'cuda:0', got {device!r}.") from None
 
 
 def _check_number(config: Any, name: str, lo: float, hi: float, *, lo_open: bool, hi_open: bool) -> None:
@@ -182,8 +213,6 @@ class OptionsDQNConfig(DQNHyperParameters):
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.checks import check_int
-
         super().__post_init__()
         choices = {"mode": ("actions", "options", "both"), "target_update": ("hard", "soft"),
                    "loss_function": ("l2", "l1", "smooth_l1")}  # fmt: skip
@@ -194,8 +223,18 @@ class OptionsDQNConfig(DQNHyperParameters):
         check_int(self.seed, "seed", minimum=0)
         check_int(self.max_decisions, "max_decisions", minimum=1, allow_none=True)
         _check_number(self, "soft_update_eps", 0, 1, lo_open=True, hi_open=True)
-        if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
-            raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
+        check_max_grad_norm(self.max_grad_norm)
+        for name in ("greedy_options", "intra_option_actions", "option_suffixes"):
+            check_bool(getattr(self, name), name)
+        check_nested_key(self.observation_key, "observation_key")
+
+
+def check_max_grad_norm(value: Any) -> None:
+    """``None`` or a finite number > 0."""
+    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise TypeError(f"max_grad_norm must be None or a number > 0, got {value!r} ({type(value).__name__}).")
+    if value is not None and not 0 < value < math.inf:
+        raise ValueError(f"max_grad_norm must be None or > 0 (finite), got {value!r}.")
 
 
 @dataclass
@@ -232,8 +271,148 @@ class TrainingLog:
 
 def _batched_env(env_factory: Callable[[], EnvBase], num_envs: int, parallel: bool) -> EnvBase:
     if num_envs == 1:
-        return env_factory()
-    return (ParallelEnv if parallel else SerialEnv)(num_envs, env_factory)
+        env = env_factory()
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"env_factory must return a torchrl EnvBase, it returned {type(env).__name__}.")
+        return env
+    try:
+        return (ParallelEnv if parallel else SerialEnv)(num_envs, env_factory)
+    except (AttributeError, TypeError) as err:
+        raise TypeError(
+            f"building {num_envs} envs from env_factory failed ({type(err).__name__}: {err}): env_factory must be a "
+            "callable that returns a torchrl EnvBase."
+        ) from err
+
+
+def _check_agent_arguments(
+    owner: str, env_factory: Any, config: Any, config_class: type, options: Any, num_options: Any
+) -> None:
+    """The checks shared by :class:`OptionsDQN` and :class:`~torchrl_options.agents.OptionsPPO` before any env is
+    made: the config's type, an env factory (not an env), options exactly when the mode uses them."""
+    if not isinstance(config, config_class):
+        raise TypeError(f"config must be an {config_class.__name__}, got {type(config).__name__}.")
+    if isinstance(env_factory, EnvBase):
+        raise TypeError(
+            f"{owner}: env_factory must be a callable that makes an env (e.g. `lambda: GridWorldEnv(...)`), got an "
+            f"env instance ({type(env_factory).__name__}): the agent makes config.num_envs envs itself and batches "
+            "them."
+        )
+    check_callable(env_factory, "env_factory", what="a callable making an env")
+    if config.mode == "actions":
+        if options is not None or num_options is not None:
+            raise ValueError(
+                f"{owner}: mode='actions' learns over primitive actions only and would ignore the options; got "
+                f"options={type(options).__name__ if options is not None else None} and num_options={num_options!r}. "
+                "Use mode='both' (actions and options) or mode='options', or leave them out."
+            )
+    elif options is None or num_options is None:
+        raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
+    check_int(num_options, "num_options", minimum=1, allow_none=True)
+    if options is not None and not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
+    k = getattr(options, "num_options", None)
+    if isinstance(k, int) and not isinstance(k, bool) and num_options is not None and k != num_options:
+        raise ValueError(f"{owner}: num_options={num_options} but the options module has num_options={k}.")
+
+
+def _check_network(network: Any, name: str) -> None:
+    if network is not None and not isinstance(network, nn.Module):
+        raise TypeError(f"{name} must be a torch.nn.Module (or None for the default MLP), got {type(network).__name__}.")
+
+
+def _check_env(owner: str, env: EnvBase, config: Any) -> Any:
+    """The training env's action spec, after checking that the agent can drive the env: a discrete ``"action"``,
+    the observation it reads, and collector batches the envs fill exactly. Returns the action spec."""
+    spec = env.full_action_spec_unbatched.get("action", None)
+    if spec is None or not hasattr(spec, "n"):
+        found = "no 'action' entry" if spec is None else f"a {type(spec).__name__} 'action'"
+        raise ValueError(
+            f"{owner} needs an env with a discrete (Categorical) 'action', as DQN and the option executor do; the "
+            f"env has {found}."
+        )
+    key = config.observation_key
+    if key not in env.observation_spec.keys(include_nested=True):
+        keys = sorted(map(str, env.observation_spec.keys(include_nested=True, leaves_only=True)))
+        raise ValueError(
+            f"{owner}: config.observation_key={key!r} is not an observation of the env (its observations: {keys})."
+        )
+    envs = env.batch_size.numel() if len(env.batch_size) else 1
+    check_frames_per_batch(config.frames_per_batch, envs, "the env's batch size")
+    return spec
+
+
+def _check_train_arguments(total_frames: Any, callback: Any) -> None:
+    check_int(total_frames, "total_frames", minimum=0, allow_none=True)
+    check_callable(callback, "callback", allow_none=True)
+
+
+_TRAINING_LOG_FIELDS = ("episode_returns", "episode_lengths", "episode_end_frames", "losses", "evaluations")
+_OTHER_FORMATS = {
+    "torchrl_options/options-v1": "an options file written by save_options (load it with load_options)",
+    "torchrl_options/hierarchy-v1": "a hierarchy file written by save_hierarchy (load it with load_hierarchy)",
+    "torchrl_options.tensordict/1": "a TensorDict (e.g. trajectories) written by torchrl_options",
+}
+
+
+def _check_state(state: Any, owner: str, required: tuple[str, ...], counters: tuple[str, ...], source: str | None) -> str:
+    """Checks an agent checkpoint's layout before anything is restored (a bad one leaves the agent as it was);
+    returns the prefix of the error messages (the file, or ``load_state_dict``)."""
+    where = f"{source}: " if source else "load_state_dict: "
+    if not isinstance(state, dict):
+        raise TypeError(f"{where}expected a dict from {owner}.state_dict, got {type(state).__name__}.")
+    other = _OTHER_FORMATS.get(state.get("format")) if isinstance(state.get("format"), str) else None
+    if other is not None:
+        raise ValueError(f"{where}not an {owner} checkpoint: this is {other}.")
+    missing = [k for k in required if k not in state]
+    if missing:
+        raise ValueError(
+            f"{where}not an {owner} checkpoint (written by {owner}.save / state_dict), missing {missing}; it holds "
+            f"{sorted(map(str, state))}."
+        )
+    for name in ("loss_module", "optimizer") + (("exploration",) if "exploration" in required else ()):
+        if not isinstance(state[name], dict):
+            raise ValueError(f"{where}the checkpoint's {name!r} must be a state dict, got {type(state[name]).__name__}.")
+    for name in counters:
+        value = state.get(name, 0)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{where}the checkpoint's {name!r} must be an int >= 0, got {value!r}.")
+    log = state["log"]
+    if not isinstance(log, dict) or not set(log) <= set(_TRAINING_LOG_FIELDS) or not all(isinstance(v, list) for v in log.values()):
+        raise ValueError(
+            f"{where}the checkpoint's 'log' must be a dict of lists with keys among {list(_TRAINING_LOG_FIELDS)}, got "
+            f"{log if not isinstance(log, dict) else sorted(map(str, log))!r}."
+        )
+    if "config" in state and not isinstance(state["config"], dict):
+        raise ValueError(f"{where}the checkpoint's 'config' must be a dict, got {type(state['config']).__name__}.")
+    rng = state.get("rng")
+    if rng is not None and (not isinstance(rng, dict) or not {"torch", "numpy", "python"} <= set(rng)):
+        raise ValueError(f"{where}the checkpoint's 'rng' must hold the 'torch', 'numpy' and 'python' random states.")
+    if not isinstance(state.get("generators", {}), dict):
+        raise ValueError(f"{where}the checkpoint's 'generators' must be a dict of generator states.")
+    return where
+
+
+def _restore_or_roll_back(where: str, parts: list[tuple[str, Any, Any]]) -> None:
+    """Loads each ``(name, module or optimizer, state dict)`` in turn; when one does not fit, those already loaded
+    are put back as they were and a ``ValueError`` names the part."""
+    import copy
+
+    done = []
+    for name, target, state in parts:
+        backup = copy.deepcopy(target.state_dict())
+        try:
+            target.load_state_dict(state)
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as err:
+            for _, t, b in reversed(done):
+                t.load_state_dict(b)
+            detail = str(err).splitlines()[0] if str(err) else type(err).__name__
+            if name == "loss_module":
+                raise ValueError(
+                    f"{where}the checkpoint's networks do not fit this agent's (another action space, number of "
+                    f"options or hidden sizes?): {detail} ..."
+                ) from None
+            raise ValueError(f"{where}the checkpoint's {name} state does not fit this agent's: {detail}") from None
+        done.append((name, target, backup))
 
 
 def _with_reward_sum_and_step_count(env: EnvBase) -> EnvBase:
@@ -353,21 +532,14 @@ class OptionsDQN:
         q_network: nn.Module | None = None,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
     ):
-        self.config = config = config or OptionsDQNConfig()
-        if not isinstance(config, OptionsDQNConfig):
-            raise TypeError(f"config must be an OptionsDQNConfig, got {type(config).__name__}.")
-        if config.mode not in ("actions", "options", "both"):
-            raise ValueError(f"mode must be 'actions', 'options' or 'both', got {config.mode!r}.")
-        if config.mode != "actions" and (options is None or num_options is None):
-            raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
-        if not callable(env_factory):
-            raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
-        if num_options is not None:
-            from torchrl_options.checks import check_int
-
-            check_int(num_options, "num_options", minimum=1)
-        if options is not None and not isinstance(options, TensorDictModuleBase):
-            raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
+        self.config = config = OptionsDQNConfig() if config is None else config
+        _check_agent_arguments("OptionsDQN", env_factory, config, OptionsDQNConfig, options, num_options)
+        _check_network(q_network, "q_network")
+        if optimizer is not None and (isinstance(optimizer, torch.optim.Optimizer) or not callable(optimizer)):
+            raise TypeError(
+                "optimizer must be a factory called as optimizer(params, lr=config.lr) (e.g. torch.optim.Adam or "
+                f"functools.partial(torch.optim.Adam, fused=True)), got {type(optimizer).__name__}."
+            )
         self._executor_level = 0
         self.env_factory = env_factory
         self.options = options
@@ -375,7 +547,7 @@ class OptionsDQN:
         self.device = torch.device(config.device)
         self.env = self.make_env()
 
-        spec = self.env.full_action_spec_unbatched["action"]
+        spec = _check_env("OptionsDQN", self.env, config)
         if config.intra_option_actions and (config.mode != "both" or self._executor_level != 1):
             raise ValueError(
                 "intra_option_actions=True needs mode='both' over an env's own primitive actions (a level-1 "
@@ -454,10 +626,13 @@ class OptionsDQN:
     ) -> TrainingLog:
         """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
 
+        The budget is counted in whole collector batches: ``total_frames`` is rounded up to a multiple of
+        ``config.frames_per_batch`` (which the envs fill exactly: see :class:`DQNHyperParameters`).
         ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints); when
         it returns ``True`` training stops there (e.g. after a number of episodes).
         Can be called again to continue training, also after :meth:`load_state_dict`.
         """
+        _check_train_arguments(total_frames, callback)
         config = self.config
         if total_frames is None:
             total_frames = config.total_frames - self.frames
@@ -551,6 +726,8 @@ class OptionsDQN:
         Runs one env from ``env_factory`` (batched if the factory makes batched envs) for at most
         ``max_steps`` steps per call; episodes still running then are not counted.
         """
+        check_int(num_episodes, "num_episodes", minimum=1)
+        check_int(max_steps, "max_steps", minimum=1)
         saved, self.config.num_envs = self.config.num_envs, 1
         try:
             env = self.make_env()
@@ -580,6 +757,8 @@ class OptionsDQN:
             >>> agent.log.evaluations[-1][1:] == [128, mean, 2]
             True
         """
+        check_int(num_episodes, "num_episodes", minimum=1)
+        check_int(max_steps, "max_steps", minimum=1)
         devices = [self.device] if self.device.type == "cuda" else []
         with torch.random.fork_rng(devices=devices):
             returns = self.evaluate(num_episodes=num_episodes, max_steps=max_steps)
@@ -595,6 +774,7 @@ class OptionsDQN:
         state the training draws from (:func:`~torchrl_options.checkpoints.rng_state`, and the private generators
         of the env and its transforms, such as the option executor's), as plain data: the checkpoint loads with
         ``weights_only=True`` and a run resumed from it draws the same numbers as an uninterrupted one."""
+        check_bool(include_buffer, "include_buffer")
         state = {
             "loss_module": self.loss_module.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -615,26 +795,27 @@ class OptionsDQN:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores :meth:`state_dict` (random states included when the checkpoint has them).
 
+        The checkpoint is checked whole before anything is restored: a bad one leaves the agent as it was.
+
         Raises:
-            ValueError: ``state`` lacks an entry, or was saved by an agent over another action space or network.
+            ValueError: ``state`` lacks an entry, holds one of the wrong type, or was saved by an agent over another
+                action space or network.
         """
-        if not isinstance(state, dict):
-            raise TypeError(f"load_state_dict: expected a dict from OptionsDQN.state_dict, got {type(state).__name__}.")
-        missing = [k for k in ("loss_module", "optimizer", "exploration", "frames", "gradient_steps", "log") if k not in state]
-        if missing:
-            raise ValueError(f"load_state_dict: not an OptionsDQN checkpoint, missing {missing}.")
+        self._load_state(state, None)
+
+    def _load_state(self, state: Any, source: str | None) -> None:
+        where = _check_state(
+            state, "OptionsDQN", ("loss_module", "optimizer", "exploration", "frames", "gradient_steps", "log"),
+            ("frames", "gradient_steps", "target_update_counter"), source,
+        )  # fmt: skip
         saved_mode = state.get("config", {}).get("mode", self.config.mode)
         if saved_mode != self.config.mode:
-            raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
-        try:
-            self.loss_module.load_state_dict(state["loss_module"])
-        except (RuntimeError, ValueError, KeyError) as err:
-            raise ValueError(
-                "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
-                f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."
-            ) from None
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.exploration.load_state_dict(state["exploration"])
+            raise ValueError(f"{where}the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
+        _restore_or_roll_back(
+            where,
+            [("loss_module", self.loss_module, state["loss_module"]), ("optimizer", self.optimizer, state["optimizer"]),
+             ("exploration", self.exploration, state["exploration"])],
+        )  # fmt: skip
         self.frames = int(state["frames"])
         self.gradient_steps = int(state["gradient_steps"])
         if "target_update_counter" in state and hasattr(self.target_updater, "counter"):
@@ -692,6 +873,9 @@ class OptionsDQN:
             >>> len(agent.replay_buffer) == len(base.replay_buffer)
             True
         """
+        if not isinstance(source, OptionsDQN):
+            raise TypeError(f"warm_start_from: source must be an OptionsDQN, got {type(source).__name__}.")
+        check_bool(copy_buffer, "copy_buffer")
         if source.config.mode != "actions":
             raise ValueError(f"warm_start_from: source must have mode='actions', got {source.config.mode!r}.")
         if self.config.mode != "both":
@@ -724,4 +908,4 @@ class OptionsDQN:
         Raises:
             ValueError: the file is missing, empty, corrupt, needs pickle, or does not fit this agent.
         """
-        self.load_state_dict(load_file(path, what="OptionsDQN checkpoint", map_location=self.device))
+        self._load_state(load_file(path, what="OptionsDQN checkpoint", map_location=self.device), os.fspath(path))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
@@ -33,14 +34,24 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from torchrl_options.agents.dqn import (
     _batched_env,
+    _check_agent_arguments,
+    _check_env,
+    _check_network,
+    _check_state,
+    _check_train_arguments,
     _count_executors,
     _generators,
     _greedy_returns,
+    _restore_or_roll_back,
     _seed_executors,
     _with_reward_sum_and_step_count,
+    check_device,
+    check_frames_per_batch,
+    check_max_grad_norm,
     TrainingLog,
 )
 from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
+from torchrl_options.checks import check_bool, check_int, check_nested_key
 from torchrl_options.data.on_policy import OnPolicyDecisions
 from torchrl_options.objectives.decision_guard import guard_decision_level
 from torchrl_options.transforms.option_executor import OptionExecutor
@@ -62,7 +73,8 @@ class OptionsPPOConfig:
         num_envs: number of envs; more than one are batched in a ``SerialEnv`` (``ParallelEnv`` with
             ``parallel=True``) with the executor outside.
         total_frames: training budget of :meth:`OptionsPPO.train`.
-        frames_per_batch: collector batch size (one PPO update per batch).
+        frames_per_batch: collector batch size (one PPO update per batch), a multiple of the number of envs (the
+            collector steps them together; another size would make larger batches than asked).
         num_epochs: passes over each batch's decisions.
         minibatch_size: decisions per gradient step (``None``: the whole batch).
         lr: Adam learning rate.
@@ -103,14 +115,13 @@ class OptionsPPOConfig:
 
     def __post_init__(self) -> None:
         """Refuses a bad setting at once, naming it and the allowed values (``TypeError`` for a wrong type)."""
-        from torchrl_options.checks import check_int
-
         choices = {"mode": ("actions", "options", "both"), "loss_critic_type": ("l1", "l2", "smooth_l1")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}.")
         for name, minimum in (("num_envs", 1), ("total_frames", 0), ("frames_per_batch", 1), ("num_epochs", 1), ("seed", 0)):
             check_int(getattr(self, name), name, minimum=minimum)
+        check_frames_per_batch(self.frames_per_batch, self.num_envs, "num_envs")
         check_int(self.minibatch_size, "minibatch_size", minimum=1, allow_none=True)
         for name, lo, hi, lo_open in (("lr", 0, math.inf, True), ("gamma", 0, 1, False), ("lmbda", 0, 1, False),
                                       ("clip_epsilon", 0, math.inf, True), ("entropy_coeff", 0, math.inf, False),
@@ -123,8 +134,9 @@ class OptionsPPOConfig:
         for name in ("parallel", "normalize_advantage", "greedy_options"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}.")
-        if self.max_grad_norm is not None and (isinstance(self.max_grad_norm, bool) or not self.max_grad_norm > 0):
-            raise ValueError(f"max_grad_norm must be None or > 0, got {self.max_grad_norm!r}.")
+        check_max_grad_norm(self.max_grad_norm)
+        check_nested_key(self.observation_key, "observation_key")
+        check_device(self.device, "device")
         sizes = self.hidden_sizes
         if isinstance(sizes, (str, bytes)) or not isinstance(sizes, (tuple, list)) or not all(
             isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
@@ -187,19 +199,10 @@ class OptionsPPO:
         policy_network: nn.Module | None = None,
         value_network: nn.Module | None = None,
     ):
-        self.config = config = config or OptionsPPOConfig()
-        if not isinstance(config, OptionsPPOConfig):
-            raise TypeError(f"config must be an OptionsPPOConfig, got {type(config).__name__}.")
-        if config.mode != "actions" and (options is None or num_options is None):
-            raise ValueError(f"mode={config.mode!r} needs `options` and `num_options`.")
-        if not callable(env_factory):
-            raise TypeError(f"env_factory must be a callable making an env, got {type(env_factory).__name__}.")
-        if num_options is not None:
-            from torchrl_options.checks import check_int
-
-            check_int(num_options, "num_options", minimum=1)
-        if options is not None and not isinstance(options, TensorDictModuleBase):
-            raise TypeError(f"options must be a TensorDictModuleBase, got {type(options).__name__}.")
+        self.config = config = OptionsPPOConfig() if config is None else config
+        _check_agent_arguments("OptionsPPO", env_factory, config, OptionsPPOConfig, options, num_options)
+        _check_network(policy_network, "policy_network")
+        _check_network(value_network, "value_network")
         self.env_factory = env_factory
         self.options = options
         self.num_options = num_options
@@ -207,7 +210,7 @@ class OptionsPPO:
         self._executor_level = 0
         self.env = self.make_env()
 
-        spec = self.env.full_action_spec_unbatched["action"]
+        spec = _check_env("OptionsPPO", self.env, config)
         obs_dim = self.env.observation_spec[config.observation_key].shape[-1]
         if policy_network is None:
             policy_network = MLP(in_features=obs_dim, out_features=spec.n, num_cells=list(config.hidden_sizes), activation_class=nn.Tanh)
@@ -276,10 +279,13 @@ class OptionsPPO:
     ) -> TrainingLog:
         """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
 
+        The budget is counted in whole collector batches (one PPO update each): ``total_frames`` is rounded up to a
+        multiple of ``config.frames_per_batch`` (which the envs fill exactly: see :class:`OptionsPPOConfig`).
         ``callback(agent, batch)`` is called after every collector batch; when it returns ``True`` training stops
         there. Can be called again to continue training (the collector then restarts the episodes), also after
         :meth:`load_state_dict`.
         """
+        _check_train_arguments(total_frames, callback)
         config = self.config
         if total_frames is None:
             total_frames = config.total_frames - self.frames
@@ -317,6 +323,11 @@ class OptionsPPO:
     def update(self, decisions: TensorDictBase) -> None:
         """One PPO update on a decision-level batch (from :attr:`decisions`): GAE over the decisions, then
         ``num_epochs`` passes of ``ClipPPOLoss`` over shuffled minibatches."""
+        if not isinstance(decisions, TensorDictBase) or decisions.ndim != 1:
+            raise TypeError(
+                "update expects a decision-level TensorDict of shape [M] (from agent.decisions(batch)), got "
+                f"{type(decisions).__name__}{f' of shape {list(decisions.shape)}' if isinstance(decisions, TensorDictBase) else ''}."
+            )
         config = self.config
         decisions = decisions.to(self.device)
         with torch.no_grad():
@@ -349,6 +360,8 @@ class OptionsPPO:
     def evaluate(self, num_episodes: int = 10, max_steps: int = 1000) -> list[float]:
         """Returns of the first ``num_episodes`` episodes of the greedy policy (the mode of its distribution;
         options act as configured), on one env from ``env_factory`` run for at most ``max_steps`` steps."""
+        check_int(num_episodes, "num_episodes", minimum=1)
+        check_int(max_steps, "max_steps", minimum=1)
         saved, self.config.num_envs = self.config.num_envs, 1
         try:
             env = self.make_env()
@@ -360,6 +373,7 @@ class OptionsPPO:
     def state_dict(self, include_buffer: bool = False) -> dict[str, Any]:
         """Networks, optimizer, counters, log and every random state the training draws from, as plain data (loads
         with ``weights_only=True``). ``include_buffer`` is accepted for the recipes' sake: PPO keeps no buffer."""
+        check_bool(include_buffer, "include_buffer")
         return {
             "loss_module": self.loss_module.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -372,28 +386,26 @@ class OptionsPPO:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restores :meth:`state_dict`.
+        """Restores :meth:`state_dict`. The checkpoint is checked whole before anything is restored: a bad one
+        leaves the agent as it was.
 
         Raises:
-            ValueError: ``state`` is not an OptionsPPO checkpoint, or was saved by an agent over another action
-                space or network.
+            ValueError: ``state`` is not an OptionsPPO checkpoint, holds an entry of the wrong type, or was saved by
+                an agent over another action space or network.
         """
-        if not isinstance(state, dict):
-            raise TypeError(f"load_state_dict: expected a dict from OptionsPPO.state_dict, got {type(state).__name__}.")
-        missing = [k for k in ("loss_module", "optimizer", "frames", "updates", "log") if k not in state]
-        if missing:
-            raise ValueError(f"load_state_dict: not an OptionsPPO checkpoint, missing {missing}.")
+        self._load_state(state, None)
+
+    def _load_state(self, state: Any, source: str | None) -> None:
+        where = _check_state(
+            state, "OptionsPPO", ("loss_module", "optimizer", "frames", "updates", "log"), ("frames", "updates"), source
+        )
         saved_mode = state.get("config", {}).get("mode", self.config.mode)
         if saved_mode != self.config.mode:
-            raise ValueError(f"load_state_dict: the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
-        try:
-            self.loss_module.load_state_dict(state["loss_module"])
-        except (RuntimeError, ValueError, KeyError) as err:
-            raise ValueError(
-                "load_state_dict: the checkpoint's networks do not fit this agent's (another action space, number "
-                f"of options or hidden sizes?): {str(err).splitlines()[0]} ..."
-            ) from None
-        self.optimizer.load_state_dict(state["optimizer"])
+            raise ValueError(f"{where}the checkpoint is of mode={saved_mode!r}, this agent has mode={self.config.mode!r}.")
+        _restore_or_roll_back(
+            where,
+            [("loss_module", self.loss_module, state["loss_module"]), ("optimizer", self.optimizer, state["optimizer"])],
+        )
         self.frames = int(state["frames"])
         self.updates = int(state["updates"])
         self.log = TrainingLog(**{k: list(v) for k, v in state["log"].items()})
@@ -410,4 +422,4 @@ class OptionsPPO:
 
     def load(self, path) -> None:
         """Restores a checkpoint written by :meth:`save`, without running code from the file."""
-        self.load_state_dict(load_file(path, what="OptionsPPO checkpoint", map_location=self.device))
+        self._load_state(load_file(path, what="OptionsPPO checkpoint", map_location=self.device), os.fspath(path))

@@ -15,6 +15,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.checks import check_int, check_nested_key
+
 __all__ = ["widen_action_rows", "widen_action_values"]
 
 
@@ -49,6 +51,10 @@ def widen_action_rows(
         >>> torch.allclose(new(x)[:, :2], old(x)), torch.allclose(new(x)[:, 2:], old(x).mean(-1, keepdim=True).expand(5, 2))
         (True, True)
     """
+    for name, value in (("source", source), ("target", target)):
+        if not isinstance(value, Mapping):
+            raise TypeError(f"widen_action_rows: {name} must be a state dict (a mapping of tensors), got {type(value).__name__}.")
+    check_int(num_actions, "num_actions", minimum=1)
     out = {}
     for key, t in target.items():
         if key not in source:
@@ -81,6 +87,10 @@ def widen_action_values(data: TensorDictBase, num_outputs: int, key: NestedKey =
         >>> widen_action_values(td, 4)["action_value"]
         tensor([[1., 3., 2., 2.]])
     """
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"widen_action_values: data must be a TensorDict of transitions, got {type(data).__name__}.")
+    check_int(num_outputs, "num_outputs", minimum=1)
+    key = check_nested_key(key, "key", "widen_action_values")
     value = data.get(key, None)
     if value is None:
         return data

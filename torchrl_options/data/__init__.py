@@ -2,6 +2,7 @@
 the primitive actions that options took."""
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.on_policy import OnPolicyDecisions
+from torchrl_options.data.segments import rewarded_segments
 from torchrl_options.data.smdp import SMDPTransform, SMDPTransitions, smdp_transitions
 
 __all__ = [
@@ -10,5 +11,6 @@ __all__ = [
     "SMDPTransitions",
     "intra_option_transitions",
     "option_suffix_transitions",
+    "rewarded_segments",
     "smdp_transitions",
 ]

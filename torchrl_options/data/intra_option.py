@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.utils import NestedKey, unravel_key
+from tensordict.utils import NestedKey
+
+from torchrl_options.checks import check_distinct_keys, check_int, check_number
 
 __all__ = ["intra_option_transitions", "option_suffix_transitions"]
 
@@ -86,10 +88,17 @@ def intra_option_transitions(
         >>> out["observation"], out["action"], out["steps_to_next_obs"].squeeze(-1)
         (tensor([1., 2., 3.]), tensor([1, 1, 0]), tensor([1, 1, 1]))
     """
-    if data.ndim == 0:
-        raise ValueError("intra_option_transitions expects data with a time dimension (shape [T] or [*B, T]).")
-    action_key, executed_action_key = unravel_key(action_key), unravel_key(executed_action_key)
-    option_key, reward_key, steps_key = unravel_key(executed_option_key), unravel_key(reward_key), unravel_key(steps_key)
+    _check_data(data, "intra_option_transitions")
+    check_int(num_actions, "intra_option_transitions: num_actions", minimum=1, allow_none=True)
+    keys = check_distinct_keys(
+        {"action_key": action_key, "executed_action_key": executed_action_key,
+         "executed_option_key": executed_option_key, "reward_key": reward_key, "steps_key": steps_key},
+        "intra_option_transitions",
+    )  # fmt: skip
+    action_key, executed_action_key = keys["action_key"], keys["executed_action_key"]
+    option_key, reward_key, steps_key = keys["executed_option_key"], keys["reward_key"], keys["steps_key"]
+    if data.get(reward_key, None) is None:
+        raise ValueError(f"intra_option_transitions: data has no {reward_key!r} entry (reward_key).")
     for key in (option_key, executed_action_key):
         if data.get(key, None) is None:
             raise ValueError(
@@ -179,13 +188,16 @@ def option_suffix_transitions(
         >>> out["next", "observation"]  # both end where the run ends, at s_4
         tensor([4., 4.])
     """
-    if data.ndim == 0:
-        raise ValueError("option_suffix_transitions expects data with a time dimension (shape [T] or [*B, T]).")
-    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must lie in [0, 1], got {gamma!r}.")
-    action_key, option_key = unravel_key(action_key), unravel_key(executed_option_key)
-    decision_key = unravel_key(decision_key)
-    reward_key, done_key, steps_key = unravel_key(reward_key), unravel_key(done_key), unravel_key(steps_key)
+    _check_data(data, "option_suffix_transitions")
+    check_number(gamma, "gamma", lo=0.0, hi=1.0)
+    check_int(action_offset, "option_suffix_transitions: action_offset", minimum=0)
+    keys = check_distinct_keys(
+        {"action_key": action_key, "executed_option_key": executed_option_key, "decision_key": decision_key,
+         "reward_key": reward_key, "done_key": done_key, "steps_key": steps_key},
+        "option_suffix_transitions",
+    )  # fmt: skip
+    action_key, option_key, decision_key = keys["action_key"], keys["executed_option_key"], keys["decision_key"]
+    reward_key, done_key, steps_key = keys["reward_key"], keys["done_key"], keys["steps_key"]
     for key in (option_key, decision_key, reward_key, done_key):
         if data.get(key, None) is None:
             raise ValueError(
@@ -239,3 +251,10 @@ def option_suffix_transitions(
     k = length.reshape(-1)[index]
     out.set(steps_key, k.view(k.shape[0], *([1] * (r.ndim - 1))) if r.ndim > 1 else k)
     return out
+
+
+def _check_data(data: TensorDictBase, owner: str) -> None:
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"{owner} expects a TensorDict of step-level data, got {type(data).__name__}.")
+    if data.ndim == 0:
+        raise ValueError(f"{owner} expects data with a time dimension (shape [T] or [*B, T]).")

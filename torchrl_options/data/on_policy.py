@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.utils import NestedKey, unravel_key
+from tensordict.utils import NestedKey
 
-from torchrl_options.data.smdp import SMDPTransitions
+from torchrl_options.checks import check_distinct_keys
+from torchrl_options.data.smdp import _check_step_data, SMDPTransitions
 
 __all__ = ["OnPolicyDecisions"]
 
@@ -110,14 +111,23 @@ class OnPolicyDecisions:
         end_of_batch_key: NestedKey = ("next", "end_of_batch"),
     ):
         self.every_step = decision_key is None
-        self._decision_key = None if decision_key is None else unravel_key(decision_key)
+        # every key names its own entry: steps_key=("next", "reward") would write the decisions' lengths over their
+        # rewards, end_of_batch_key=("next", "terminated") would turn the batch cuts into terminations
+        keys = check_distinct_keys(
+            {**({} if decision_key is None else {"decision_key": decision_key}), "reward_key": reward_key,
+             "done_key": done_key, "terminated_key": terminated_key, "truncated_key": truncated_key,
+             "steps_key": steps_key, "end_of_batch_key": end_of_batch_key},
+            "OnPolicyDecisions",
+        )  # fmt: skip
+        self._decision_key = keys.get("decision_key")
         self.smdp = SMDPTransitions(
             gamma, decision_key=_EVERY_STEP if decision_key is None else decision_key, reward_key=reward_key, done_key=done_key, steps_key=steps_key
         )
-        self.done_key = unravel_key(done_key)
-        self.terminated_key = unravel_key(terminated_key)
-        self.truncated_key = unravel_key(truncated_key)
-        self.end_of_batch_key = unravel_key(end_of_batch_key)
+        self.smdp.owner = "OnPolicyDecisions"
+        self.done_key = keys["done_key"]
+        self.terminated_key = keys["terminated_key"]
+        self.truncated_key = keys["truncated_key"]
+        self.end_of_batch_key = keys["end_of_batch_key"]
 
     @property
     def gamma(self) -> float:
@@ -135,11 +145,20 @@ class OnPolicyDecisions:
 
     def __call__(self, data: TensorDictBase) -> TensorDictBase:
         """Returns the decisions of ``data`` (shape ``[T]`` or ``[*B, T]``, time last) that end in it, as a
-        TensorDict of shape ``[M]``; ``M`` may be 0."""
-        if not isinstance(data, TensorDictBase):
-            raise TypeError(f"OnPolicyDecisions expects a TensorDict of step-level data, got {type(data).__name__}.")
-        if data.ndim == 0:
-            raise ValueError("OnPolicyDecisions expects data with a time dimension (shape [T] or [*B, T]).")
+        TensorDict of shape ``[M]``; ``M`` may be 0.
+
+        Raises:
+            ValueError: ``data`` lacks the decision, done or reward entries, already holds an entry this writes
+                (``steps_key``, ``end_of_batch_key``), or has another layout (envs, entries, device) than the
+                previous batch while decisions are carried over from it (call :meth:`reset` to start a new stream).
+        """
+        _check_step_data(data, self.smdp.keys, "OnPolicyDecisions", False)
+        if data.get(self.end_of_batch_key, None) is not None:
+            raise ValueError(
+                f"OnPolicyDecisions: the step-level data already holds a {self.end_of_batch_key!r} entry "
+                "(end_of_batch_key), which the batch cuts are written to: it would be overwritten. Pass another "
+                "end_of_batch_key, or remove the entry."
+            )
         if not self.every_step and data.get(self._decision_key, None) is None:
             raise ValueError(
                 f"OnPolicyDecisions: the data has no {self._decision_key!r} entry (decision_key). Collect with an "

@@ -31,6 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.envs import Transform
 
+from torchrl_options.checks import check_bool, check_distinct_keys, check_int, check_number
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 
 logger = logging.getLogger(__name__)
@@ -103,8 +104,10 @@ def smdp_transitions(
         >>> out["next", "observation"]  # the 3-step option ends at the next decision, s_3
         tensor([3., 4.])
     """
-    keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key)
-    out, _ = _decisions(data, _check_gamma(gamma), None, keys, _per_decision(discount_per))
+    keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key, owner="smdp_transitions")
+    per_decision = _per_decision(discount_per)
+    _check_step_data(data, keys, "smdp_transitions", per_decision)
+    out, _ = _decisions(data, _check_gamma(gamma), None, keys, per_decision)
     return out
 
 
@@ -114,7 +117,8 @@ class SMDPTransitions:
     A decision still running at the end of a batch (an option that spans two collector batches) is kept,
     with its partial discounted reward and step count, and completed with the next batch. Call it on every
     batch of one collector, in order; :meth:`reset` forgets the carried decisions (e.g. after the collector
-    was reset). The number of envs (leading batch size) must stay the same between calls.
+    was reset). The layout of the batches (the envs, their entries, the device) must stay the same between calls
+    while decisions are carried over: another layout raises a ``ValueError`` instead of losing them.
 
     Args:
         gamma (float): the discount factor.
@@ -142,22 +146,27 @@ class SMDPTransitions:
         discount_per: str = "step",
         duration_key: NestedKey = "decision_steps",
     ):
+        self.owner = "SMDPTransitions"  # named in the errors (OnPolicyDecisions names itself)
         self.gamma = _check_gamma(gamma)
         self.per_decision = _per_decision(discount_per)
-        self.keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key)
+        self.keys = _Keys(decision_key, reward_key, done_key, steps_key, duration_key, owner=self.owner)
         self._carry: _Carry | None = None
 
     def __call__(self, data: TensorDictBase) -> TensorDictBase:
+        """Returns the decisions that end in ``data`` (shape ``[T]`` or ``[*B, T]``, time last), those carried over
+        from the previous batch first completed.
+
+        Raises:
+            ValueError: the batch's layout (envs, entries, device) differs from the previous batch's while decisions
+                are carried over from it (call :meth:`reset` between two streams), or ``data`` already holds an
+                entry this writes (``steps_key``, ``duration_key``).
+        """
+        _check_step_data(data, self.keys, self.owner, self.per_decision)
         carry = self._carry
-        n = data.shape[:-1].numel() if data.ndim > 1 else 1
-        if carry is not None and carry.td.shape[0] != n:
-            logger.warning(
-                "SMDPTransitions: the batch has %d envs, the carried decisions %d; dropping them.",
-                n,
-                carry.td.shape[0],
-            )
-            carry = None
+        if carry is not None:
+            _check_same_layout(carry, data, self.owner)
         out, self._carry = _decisions(data, self.gamma, carry, self.keys, self.per_decision)
+        self._carry.layout = _layout(data)
         return out
 
     def reset(self) -> None:
@@ -189,8 +198,7 @@ class SMDPTransitions:
 
 
 def _check_gamma(gamma: float) -> float:
-    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+    check_number(gamma, "gamma", lo=0.0, hi=1.0)
     return float(gamma)
 
 
@@ -201,23 +209,66 @@ def _per_decision(discount_per: str) -> bool:
 
 
 class _Keys:
-    def __init__(self, decision_key, reward_key, done_key, steps_key, duration_key):
-        named = {"decision_key": decision_key, "reward_key": reward_key, "done_key": done_key, "steps_key": steps_key,
-                 "duration_key": duration_key}  # fmt: skip
-        keys = {}
-        for name, key in named.items():
-            try:
-                keys[name] = unravel_key(key)
-            except RuntimeError:
-                raise TypeError(f"smdp: {name} must be a NestedKey (a str or a tuple of str), got {key!r}.") from None
-        for name in ("decision_key", "reward_key", "done_key", "steps_key"):
-            if keys["duration_key"] == keys[name]:
-                raise ValueError(
-                    f"smdp: duration_key and {name} are both {keys[name]!r}; the decision's length would overwrite "
-                    f"the {name[:-4]} entry. Pick another duration_key."
-                )
+    def __init__(self, decision_key, reward_key, done_key, steps_key, duration_key, owner: str = "smdp"):
+        # every key argument names its own entry: steps_key=("next", "reward") would write the decisions' lengths
+        # over their summed rewards, a duration_key equal to another key its entry
+        keys = check_distinct_keys(
+            {"duration_key": duration_key, "decision_key": decision_key, "reward_key": reward_key,
+             "done_key": done_key, "steps_key": steps_key},
+            owner,
+        )  # fmt: skip
         self.decision, self.reward, self.done = keys["decision_key"], keys["reward_key"], keys["done_key"]
         self.steps, self.duration = keys["steps_key"], keys["duration_key"]
+
+
+def _check_step_data(data: TensorDictBase, keys: _Keys, owner: str, per_decision: bool) -> None:
+    """Refuses step-level data that already holds an entry the decisions are written to (it would be overwritten)."""
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"{owner} expects a TensorDict of step-level data, got {type(data).__name__}.")
+    if data.ndim == 0:
+        raise ValueError(f"{owner} expects data with a time dimension (shape [T] or [*B, T]).")
+    if data.shape[-1] == 0:
+        raise ValueError(f"{owner} expects at least one step, got data of shape {tuple(data.shape)}.")
+    for key, name in ((keys.done, "done_key"), (keys.reward, "reward_key")):
+        if data.get(key, None) is None:
+            raise ValueError(
+                f"{owner}: data has no {key!r} entry ({name}); it needs the done flags and rewards of every step, as "
+                "a collector yields them."
+            )
+    for key, name in ((keys.steps, "steps_key"), (keys.duration, "duration_key")):
+        if name == "duration_key" and not per_decision:  # written only per decision
+            continue
+        if data.get(key, None) is not None:
+            raise ValueError(
+                f"{owner}: the step-level data already holds a {key!r} entry ({name}), which the decisions are "
+                f"written to: it would be overwritten. Pass another {name}, or remove the entry."
+            )
+
+
+def _layout(data: TensorDictBase) -> tuple:
+    """What must stay the same between two batches of one stream: the envs, the entries and the device."""
+    keys = tuple(sorted(map(str, data.keys(include_nested=True, leaves_only=True))))
+    return tuple(data.shape[:-1]), keys, data.device
+
+
+def _check_same_layout(carry: _Carry, data: TensorDictBase, owner: str) -> None:
+    """A batch continuing the stream of the previous one: the same envs (leading dims), entries and device."""
+    envs, keys, device = carry.layout
+    new_envs, new_keys, new_device = _layout(data)
+    what = None
+    if new_envs != envs:
+        what = f"has envs of shape {list(new_envs)} (leading dims), the previous batch {list(envs)}"
+    elif new_keys != keys:
+        lost, gained = sorted(set(keys) - set(new_keys)), sorted(set(new_keys) - set(keys))
+        what = f"has other entries than the previous batch (missing {lost}, new {gained})"
+    elif new_device != device:
+        what = f"is on device {new_device}, the previous batch on {device}"
+    if what is not None:
+        raise ValueError(
+            f"{owner}: the batch {what}, while {int(carry.valid.sum())} decision(s) of the previous batch are still "
+            "running and would be lost. Feed the batches of one collector, in order; call reset() first to start a "
+            "new stream (e.g. another collector)."
+        )
 
 
 class _Carry:
@@ -227,23 +278,12 @@ class _Carry:
         self.td = td  # [N]: root entries of the decision step, "next" of the last step seen, partial reward
         self.valid = valid  # [N] bool
         self.steps = steps  # [N] long
+        self.layout: tuple = ()  # of the batch it comes from (see _layout)
 
 
 def _decisions(
     data: TensorDictBase, gamma: float, carry: _Carry | None, keys: _Keys, per_decision: bool = False
 ) -> tuple[TensorDictBase, _Carry]:
-    if not isinstance(data, TensorDictBase):
-        raise TypeError(f"smdp_transitions expects a TensorDict of step-level data, got {type(data).__name__}.")
-    if data.ndim == 0:
-        raise ValueError("smdp_transitions expects data with a time dimension (shape [T] or [*B, T]).")
-    if data.shape[-1] == 0:
-        raise ValueError(f"smdp_transitions expects at least one step, got data of shape {tuple(data.shape)}.")
-    for key, name in ((keys.done, "done_key"), (keys.reward, "reward_key")):
-        if data.get(key, None) is None:
-            raise ValueError(
-                f"smdp_transitions: data has no {key!r} entry ({name}); it needs the done flags and rewards of every "
-                "step, as a collector yields them."
-            )
     T = data.shape[-1]
     data = data.reshape(-1, T)
     N = data.shape[0]
@@ -431,12 +471,15 @@ class SMDPTransform(Transform):
     ):
         super().__init__()
         for name, value in (("intra_option_actions", intra_option_actions), ("option_suffixes", option_suffixes)):
-            if not isinstance(value, bool):
-                raise TypeError(f"SMDPTransform: {name} must be a bool, got {value!r}.")
-        if num_actions is not None and (
-            isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1
-        ):
-            raise ValueError(f"SMDPTransform: num_actions must be a positive int or None, got {num_actions!r}.")
+            check_bool(value, f"SMDPTransform: {name}")
+        check_int(num_actions, "SMDPTransform: num_actions", minimum=1, allow_none=True)
+        # the transitions it writes hold every one of these entries: no two key arguments may name the same
+        check_distinct_keys(
+            {"marker_key": marker_key, "decision_key": decision_key, "reward_key": reward_key, "done_key": done_key,
+             "steps_key": steps_key, "duration_key": duration_key, "action_key": action_key,
+             "executed_action_key": executed_action_key, "executed_option_key": executed_option_key},
+            "SMDPTransform",
+        )  # fmt: skip
         if intra_option_actions and num_actions is None:
             raise ValueError(
                 "SMDPTransform: intra_option_actions=True needs num_actions (the executor's primitive actions A)."

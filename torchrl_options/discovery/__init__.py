@@ -1,18 +1,19 @@
-"""Option discovery for users: one-call DDO, initialisation, and saving/loading options."""
-from torchrl_options.discovery.discover import (
-    as_trajectory_batch,
+"""Option discovery for users: one-call DDO (:func:`discover_options`), its settings and stages, initialisation, and
+saving/loading options."""
+from torchrl_options.discovery.batch import as_trajectory_batch
+from torchrl_options.discovery.discover import discover, discover_options
+from torchrl_options.discovery.fit import converged_at, fit_ddo
+from torchrl_options.discovery.networks import default_options, Networks
+from torchrl_options.discovery.settings import (
     AUTO_RESTARTS,
     CONTINUOUS_PATIENCE,
-    converged_at,
-    default_options,
-    discover_options,
     DEFAULT_PATIENCE,
     DEFAULT_RESTARTS,
+    DiscoverySettings,
     INITS,
-    DiscoveryResult,
-    fit_ddo,
     PAPER_SETTINGS,
 )
+from torchrl_options.discovery.stages import DiscoveryResult
 from torchrl_options.discovery.diagnostics import (
     option_diagnostics,
     OptionDiagnostics,
@@ -41,11 +42,14 @@ __all__ = [
     "DEFAULT_PATIENCE",
     "DEFAULT_RESTARTS",
     "INITS",
+    "discover",
     "discover_options",
     "DiscoveryResult",
+    "DiscoverySettings",
     "fit_ddo",
     "kmeans",
     "load_options",
+    "Networks",
     "option_diagnostics",
     "options_in_use",
     "OptionDiagnostics",

@@ -7,11 +7,13 @@ likelihood alone; these label-free checks, computed on the demonstrations themse
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
 
+from torchrl_options.checks import check_number, check_numbers
 from torchrl_options.inference import forward_backward
 
 __all__ = ["OptionDiagnostics", "option_diagnostics", "options_in_use", "restart_disagreement", "UNUSED_SHARE"]
@@ -28,12 +30,17 @@ def options_in_use(usage: Sequence[float]) -> int:
     (:attr:`DiscoveryResult.option_usage <torchrl_options.discovery.DiscoveryResult>`, :class:`OptionDiagnostics`'s
     ``usage``). The complement of :func:`option_diagnostics`'s ``unused`` with its default ``min_usage``.
 
+    Raises:
+        TypeError: ``usage`` is not a sequence of numbers.
+        ValueError: a share is NaN or outside ``[0, 1]``.
+
     Examples:
         >>> options_in_use([0.6, 0.38, 0.02])
         2
         >>> options_in_use([])
         0
     """
+    usage = check_numbers(usage, "usage", lo=0.0, hi=1.0)
     return sum(u >= UNUSED_SHARE / len(usage) for u in usage)
 
 
@@ -91,6 +98,14 @@ def option_diagnostics(
         >>> d.duplicates, d.unused
         ([(0, 1)], [2])
     """
+    if not isinstance(log_probs, Mapping):
+        raise TypeError(f"log_probs must be a mapping of tensors (DDOLoss.log_probabilities), got {type(log_probs).__name__}.")
+    missing = [k for k in ("log_pi", "log_term", "log_cont", "log_eta", "mask") if k not in log_probs]
+    if missing:
+        raise ValueError(f"log_probs lacks {missing} (expected the output of DDOLoss.log_probabilities).")
+    check_number(min_usage, "min_usage", lo=0.0, hi=1.0, allow_none=True)
+    check_number(policy_tol, "policy_tol", lo=0.0, hi=math.inf, hi_open=True)
+    check_number(termination_tol, "termination_tol", lo=0.0, hi=1.0)
     mask = log_probs["mask"].bool()
     log_pi = log_probs["log_pi"].detach()
     K = log_pi.shape[-1]
@@ -147,6 +162,8 @@ def restart_disagreement(log_likelihoods: Sequence[float], *, tol: float = 0.02)
         >>> print(restart_disagreement([-1.0, -1.5, -1.3, -1.2]))  # doctest: +ELLIPSIS
         only 1 of 4 starts reached the best log-likelihood per step ...
     """
+    check_numbers(log_likelihoods, "log_likelihoods", allow_nan=True)  # NaN (a failed start) is left out
+    check_number(tol, "tol", lo=0.0, hi=math.inf, hi_open=True)
     lls = [x for x in log_likelihoods if x == x]
     if len(lls) < 2:
         return None

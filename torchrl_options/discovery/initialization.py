@@ -16,7 +16,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from torchrl_options.checks import check_int, check_positive_number
+from torchrl_options.checks import check_int, check_number, check_positive_number
+from torchrl_options.discovery.validation import check_options_module
 from torchrl_options.objectives.ddo import option_log_probs
 
 __all__ = ["change_points", "clone_from_labels", "kmeans", "pretrain_on_clusters", "pretrain_on_segments"]
@@ -109,6 +110,9 @@ def pretrain_on_clusters(
     Returns:
         The cluster label of every valid step, ``[num_valid]``.
     """
+    check_int(num_options, "num_options", minimum=1)
+    _check_cloning_inputs(options, trajectories, mask, num_options, action_space=action_space, num_actions=num_actions,
+                          needs_next=False)  # fmt: skip
     flat = trajectories[mask]
     obs = torch.cat([flat.get(k).flatten(1).float() for k in options.in_keys], -1)
     action = flat.get(action_key)
@@ -137,6 +141,37 @@ def pretrain_on_clusters(
         loss.backward()
         opt.step()
     return labels
+
+
+def _check_cloning_inputs(
+    options: TensorDictModuleBase,
+    trajectories: TensorDictBase,
+    mask: torch.Tensor,
+    num_options: int | None,
+    *,
+    action_space: str,
+    num_actions: int | None = None,
+    needs_next: bool = True,
+) -> int:
+    """The door of the pre-training functions: ``[B, T]`` trajectories with a ``[B, T]`` mask, an options module
+    that reads them and has ``num_options`` options (run once on one step), and the ``("next", key)`` entries of its
+    ``in_keys`` when terminations are cloned. Returns the module's K."""
+    if not isinstance(trajectories, TensorDictBase) or trajectories.ndim != 2:
+        got = list(trajectories.batch_size) if isinstance(trajectories, TensorDictBase) else type(trajectories).__name__
+        raise ValueError(f"trajectories must be a [B, T] tensordict (as_trajectory_batch), got {got}.")
+    if not isinstance(mask, torch.Tensor) or tuple(mask.shape) != tuple(trajectories.batch_size):
+        got = list(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
+        raise ValueError(f"mask must be a [B, T] = {list(trajectories.batch_size)} bool tensor, got {got}.")
+    k = check_options_module(options, trajectories, num_options, num_actions=num_actions, action_space=action_space)
+    if needs_next:
+        for key in options.in_keys:
+            nxt = ("next", *((key,) if isinstance(key, str) else key))
+            if nxt not in trajectories.keys(include_nested=True):
+                raise ValueError(
+                    f"the trajectories have no {nxt!r} entry: the options' terminations are cloned at the next "
+                    f"observation of their in_keys {list(options.in_keys)}."
+                )
+    return k
 
 
 def _action_features(action: torch.Tensor, num_actions: int | None) -> torch.Tensor:
@@ -195,19 +230,28 @@ def change_points(
         >>> cuts.nonzero()[:, 1].tolist()
         [0, 8]
     """
-    if not isinstance(window, int) or isinstance(window, bool) or window < 1:
-        raise ValueError(f"window must be a positive int, got {window!r}.")
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0:
-        raise ValueError(f"threshold must lie in (0, 1), got {threshold!r}.")
+    check_int(window, "window", minimum=1)
+    check_number(threshold, "threshold", lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     mask = mask.bool()
     if mask.dim() != 2 or action.shape[:2] != mask.shape:
         raise ValueError(
             f"change_points needs a [B, T] mask and [B, T, ...] actions, got mask {tuple(mask.shape)} and action "
             f"{tuple(action.shape)}."
         )
+    if not action.is_floating_point():
+        if action.dtype == torch.bool or action.is_complex():
+            raise TypeError(f"change_points: action must hold integer (or float) actions, got dtype {action.dtype}.")
+        if bool(mask.any()) and int(action[mask].min()) < 0:
+            raise ValueError(
+                f"change_points: discrete actions must be >= 0 at valid steps, got {int(action[mask].min())} "
+                "(a padding value such as -1 must sit under mask=False)."
+            )
+    elif bool(mask.any()) and not bool(torch.isfinite(action[mask]).all()):
+        raise ValueError("change_points: action holds NaN or infinite values at valid steps.")
     if num_actions is not None and not action.is_floating_point():
         top = int(action[mask].max()) + 1 if bool(mask.any()) else 0
-        if not isinstance(num_actions, int) or isinstance(num_actions, bool) or num_actions < max(top, 1):
+        check_int(num_actions, "num_actions")
+        if num_actions < max(top, 1):
             raise ValueError(f"num_actions must be an int above every action (max {top - 1}), got {num_actions!r}.")
     B, T = mask.shape
     feats = _action_features(action, num_actions).to(mask.device)
@@ -315,6 +359,7 @@ def pretrain_on_segments(
     check_int(num_options, "num_options", minimum=1)
     check_int(num_steps, "num_steps", minimum=1)
     check_positive_number(lr, "lr")
+    _check_cloning_inputs(options, trajectories, mask, num_options, action_space=action_space, num_actions=num_actions)
     mask = mask.bool()
     B, T = mask.shape
     action = trajectories.get(action_key)
@@ -402,6 +447,7 @@ def clone_from_labels(
     """
     check_int(num_steps, "num_steps", minimum=1)
     check_positive_number(lr, "lr")
+    num_options = _check_cloning_inputs(options, trajectories, mask, None, action_space=action_space)
     mask = mask.bool()
     for name, value in (("labels", labels), ("starts", starts)):
         if not isinstance(value, torch.Tensor) or value.shape != mask.shape:
@@ -409,11 +455,8 @@ def clone_from_labels(
             raise ValueError(f"{name} must be a tensor of the mask's shape {tuple(mask.shape)}, got {got}.")
     if labels.is_floating_point() or labels.dtype == torch.bool:
         raise TypeError(f"labels must be an integer tensor, got {labels.dtype}.")
-    num_options = getattr(options, "num_options", None)
     valid_labels = labels[mask]
-    if valid_labels.numel() and (
-        int(valid_labels.min()) < 0 or (num_options is not None and int(valid_labels.max()) >= num_options)
-    ):
+    if valid_labels.numel() and (int(valid_labels.min()) < 0 or int(valid_labels.max()) >= num_options):
         raise ValueError(
             f"labels must lie in [0, {num_options}) on valid steps, got {int(valid_labels.min())} to "
             f"{int(valid_labels.max())}."

@@ -2,15 +2,25 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_options.checkpoints import load_file
+from torchrl_options.checkpoints import load_file, save_file
 from torchrl_options.modules import GaussianOptionsMLP, MetaControlMLP, OneHotByteOptions, OptionsMLP, UniformMetaControl
 
-__all__ = ["save_options", "load_options", "module_to_dict", "module_from_dict"]
+__all__ = [
+    "save_options",
+    "load_options",
+    "module_to_dict",
+    "module_from_dict",
+    "check_metadata",
+    "describe_payload",
+    "write_payload",
+]
 
 _FORMAT = "torchrl_options/options-v1"
 _CLASSES: dict[str, type] = {
@@ -34,9 +44,10 @@ def module_to_dict(module: TensorDictModuleBase) -> dict:
     """
     name = type(module).__name__
     if _CLASSES.get(name) is not type(module) or not isinstance(getattr(module, "config", None), dict):
+        article = "an" if name[:1].lower() in "aeiou" else "a"
         raise ValueError(
-            f"cannot save a {name} by configuration: only {sorted(_CLASSES)} can be rebuilt from a file. Save a "
-            "hand-written module with torch.save(module.state_dict(), ...) and rebuild it in code."
+            f"cannot save {article} {name} by configuration: only {sorted(_CLASSES)} can be rebuilt from a file. Save "
+            "a hand-written module with torch.save(module.state_dict(), ...) and rebuild it in code."
         )
     return {"class": name, "config": dict(module.config), "state_dict": {k: v.detach().cpu() for k, v in module.state_dict().items()}}
 
@@ -87,10 +98,62 @@ def _build(cls: type, config: dict) -> TensorDictModuleBase:
     return cls(config.pop("num_options"), **config)
 
 
-def _describe(value: Any) -> str:
+def describe_payload(value: Any) -> str:
+    """A short description of what a file held, for the error messages of the loaders."""
     if isinstance(value, dict):
-        return f"a dict with keys {sorted(map(str, value))}"
+        fmt = value.get("format")
+        if isinstance(fmt, str):
+            return f"a file of format {fmt!r}"
+        return f"a dict with keys {sorted(map(str, value))[:12]}"
     return type(value).__name__
+
+
+_describe = describe_payload
+
+
+def check_metadata(metadata: Any) -> dict:
+    """``metadata`` as a dict of plain data (what a file read without pickle can hold); ``None`` is ``{}``.
+
+    Raises:
+        TypeError: not a mapping, or an entry that is not plain data (numbers, strings, ``None``, lists, tuples,
+            dicts with string keys, tensors).
+    """
+    if metadata is None:
+        return {}
+    if not isinstance(metadata, Mapping):
+        raise TypeError(f"metadata must be None or a dict of plain data, got {type(metadata).__name__}.")
+    _check_plain(metadata, "metadata")
+    return dict(metadata)
+
+
+def _check_plain(value: Any, name: str) -> None:
+    if value is None or isinstance(value, (bool, int, float, str, torch.Tensor)):
+        return
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_plain(v, f"{name}[{i}]")
+        return
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise TypeError(f"{name} has a key {k!r} ({type(k).__name__}); only string keys are plain data.")
+            _check_plain(v, f"{name}[{k!r}]")
+        return
+    raise TypeError(
+        f"{name} is {type(value).__name__}: only plain data (numbers, strings, None, lists, dicts, tensors) can be "
+        "saved and read back without pickle."
+    )
+
+
+def write_payload(payload: dict, path: str | os.PathLike, what: str) -> None:
+    """Writes a file's plain-data ``payload`` to ``path`` atomically (a killed run leaves the old file or none,
+    never half a file), refusing a directory or a missing folder with an error naming the path."""
+    target = Path(path)
+    if target.is_dir():
+        raise ValueError(f"{os.fspath(target)}: expected a file name for the {what} file, got a directory.")
+    if not target.parent.is_dir():
+        raise ValueError(f"{os.fspath(target)}: cannot write the {what} file: the folder {os.fspath(target.parent)} does not exist.")
+    save_file(payload, target)
 
 
 def save_options(
@@ -102,7 +165,8 @@ def save_options(
 ) -> None:
     """Saves discovered options (and optionally their meta-control) to ``path``.
 
-    The file holds plain data (class names, configurations, tensors) and loads with ``weights_only=True``.
+    The file holds plain data (class names, configurations, tensors) and loads with ``weights_only=True``; it is
+    written atomically (a run killed while saving leaves the old file or none, never half a file).
 
     Args:
         options (TensorDictModuleBase): an :class:`~torchrl_options.OptionsMLP`,
@@ -125,10 +189,14 @@ def save_options(
         >>> torch.equal(options(td.clone())["option_logits"], loaded(td.clone())["option_logits"])
         True
     """
-    payload = {"format": _FORMAT, "options": module_to_dict(options), "metadata": dict(metadata or {})}
+    if not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"save_options: options must be an options module (TensorDictModuleBase), got {type(options).__name__}.")
+    if meta_control is not None and not isinstance(meta_control, TensorDictModuleBase):
+        raise TypeError(f"save_options: meta_control must be None or a TensorDictModuleBase, got {type(meta_control).__name__}.")
+    payload = {"format": _FORMAT, "options": module_to_dict(options), "metadata": check_metadata(metadata)}
     if meta_control is not None:
         payload["meta_control"] = module_to_dict(meta_control)
-    torch.save(payload, path)
+    write_payload(payload, path, "options")
 
 
 def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, map_location=None):
@@ -156,8 +224,8 @@ def load_options(path: str | os.PathLike, *, with_meta_control: bool = False, ma
         >>> type(meta).__name__, metadata
         ('MetaControlMLP', {'K': 2})
     """
-    source = os.fspath(path)
     payload = load_file(path, what="options", map_location=map_location)
+    source = os.fspath(path)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
         raise ValueError(
             f"{source}: not an options file written by torchrl_options.save_options (expected format {_FORMAT!r}, "

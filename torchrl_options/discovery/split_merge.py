@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
+
+from torchrl_options.checks import check_callable, check_int, check_number, check_numbers
 
 __all__ = ["check_split_merge_options", "copy_option", "propose_pairs", "split_merge"]
 
@@ -53,6 +56,9 @@ def check_split_merge_options(options: TensorDictModuleBase, num_options: int) -
         ...
         ValueError: split_merge copies one option's parameter slices into another's: every parameter of the options module must have the option index as its leading dimension (num_options=4), got trunk.0.weight of shape [2, 2] (architecture 'shared' is not supported; use 'separate').
     """
+    if not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"options must be an options module (TensorDictModuleBase), got {type(options).__name__}.")
+    check_int(num_options, "num_options", minimum=1)
     named = list(options.named_parameters())
     if not named:
         raise ValueError("split_merge copies one option's parameters into another's: the options module has none.")
@@ -92,6 +98,16 @@ def copy_option(
         >>> torch.equal(w[0], w[2]), torch.equal(w[1], old[1]), torch.equal(old[0], old[2])
         (True, True, False)
     """
+    if not isinstance(options, TensorDictModuleBase):
+        raise TypeError(f"options must be an options module (TensorDictModuleBase), got {type(options).__name__}.")
+    k = _leading_size(options)
+    check_int(victim, "victim", minimum=0, maximum=k - 1)  # -1 would silently overwrite the last option
+    check_int(donor, "donor", minimum=0, maximum=k - 1)
+    if victim == donor:
+        raise ValueError(f"victim and donor must be two different options, got {victim} for both.")
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}.")
+    check_number(noise, "noise", lo=0.0, hi=math.inf, hi_open=True)
     new = copy.deepcopy(options)
     with torch.no_grad():
         for param in new.parameters():
@@ -100,6 +116,17 @@ def copy_option(
             draw = torch.randn(source.shape, generator=generator, dtype=source.dtype).to(source.device)
             param[victim] = source + scale * draw
     return new
+
+
+def _leading_size(options: TensorDictModuleBase) -> int:
+    """K, the leading size of every parameter (checked by :func:`check_split_merge_options`)."""
+    sizes = {p.shape[0] for p in options.parameters() if p.dim() > 0}
+    if len(sizes) != 1:
+        raise ValueError(
+            "copy_option needs options whose parameters all have the option index as leading dimension (see "
+            f"check_split_merge_options), got leading sizes {sorted(sizes)}."
+        )
+    return sizes.pop()
 
 
 def propose_pairs(usage: Sequence[float], duplicates: Sequence[tuple[int, int]], move: int) -> tuple[int, int]:
@@ -126,7 +153,21 @@ def propose_pairs(usage: Sequence[float], duplicates: Sequence[tuple[int, int]],
         >>> propose_pairs([0.5, 0.1, 0.3, 0.1], [], 4)
         (3, 2)
     """
+    usage = check_numbers(usage, "usage", lo=0.0, hi=1.0)
     num_options = len(usage)
+    if num_options < 2:
+        raise ValueError(
+            f"usage must hold the usage of at least 2 options (a move copies one option into another), got {num_options}."
+        )
+    if isinstance(duplicates, (str, bytes)) or not isinstance(duplicates, Sequence):
+        raise TypeError(f"duplicates must be a sequence of (i, j) option pairs, got {type(duplicates).__name__}.")
+    for pair in duplicates:
+        if (
+            not isinstance(pair, Sequence) or len(pair) != 2
+            or any(isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < num_options for k in pair)
+        ):  # fmt: skip
+            raise ValueError(f"duplicates must hold (i, j) pairs of options in [0, {num_options - 1}], got {pair!r}.")
+    check_int(move, "move", minimum=0)
     by_usage = sorted(range(num_options), key=lambda k: (usage[k], k))
     first = []
     for i, j in duplicates:
@@ -188,6 +229,13 @@ def split_merge(
         >>> all(b >= a for a, b in zip(ll, ll[1:]))
         True
     """
+    check_callable(refit, "refit")
+    check_callable(score, "score")
+    check_int(num_moves, "num_moves", minimum=0)
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}.")
+    check_number(noise, "noise", lo=0.0, hi=math.inf, hi_open=True)
+    check_number(min_gain, "min_gain", lo=0.0, hi=math.inf, hi_open=True)
     current, current_ll = fit, score(fit)
     moves: list[dict] = []
     since_change = 0

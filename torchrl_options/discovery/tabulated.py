@@ -51,7 +51,14 @@ def unique_rows(columns: Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Te
         >>> inverse.tolist(), first.tolist()
         ([1, 0, 1], [1, 0])
     """
+    if isinstance(columns, torch.Tensor) or not isinstance(columns, Sequence) or not columns:
+        raise ValueError("unique_rows: columns must be a non-empty sequence of tensors.")
+    for i, c in enumerate(columns):
+        if not isinstance(c, torch.Tensor) or c.ndim == 0:
+            raise TypeError(f"unique_rows: columns[{i}] must be a tensor with a leading dimension N, got {type(c).__name__}.")
     n = columns[0].shape[0]
+    if any(c.shape[0] != n for c in columns):
+        raise ValueError(f"unique_rows: the columns must share their leading size N, got {[c.shape[0] for c in columns]}.")
     parts = []
     for c in columns:
         c = c.reshape(n, -1)
@@ -172,6 +179,10 @@ class TabulatedDDO:
     """
 
     def __init__(self, loss_module: TensorDictModuleBase, batch: TensorDictBase) -> None:
+        if not hasattr(loss_module, "tensor_keys") or not hasattr(loss_module, "options"):
+            raise TypeError(f"TabulatedDDO: loss_module must be a DDOLoss, got {type(loss_module).__name__}.")
+        if not isinstance(batch, TensorDictBase):
+            raise TypeError(f"TabulatedDDO: batch must be a [B, T] TensorDict of trajectories, got {type(batch).__name__}.")
         if getattr(loss_module, "reduction", "mean") != "mean":
             raise ValueError(f"loss_module must use reduction='mean', got {loss_module.reduction!r}.")
         keys = loss_module.tensor_keys

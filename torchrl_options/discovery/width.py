@@ -16,6 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.checks import check_int
 from torchrl_options.objectives import DDOLoss
 
 __all__ = ["AUTO_WIDTHS", "HOLDOUT_FRACTION", "held_out_log_likelihood", "select_width", "split_trajectories"]
@@ -140,8 +141,10 @@ def select_width(
         (True, [4, 8])
     """
     widths = list(widths)
-    if not widths or any(not isinstance(w, int) or isinstance(w, bool) or w < 1 for w in widths):
-        raise ValueError(f"widths must be a non-empty sequence of positive ints, got {widths!r}.")
+    if not widths:
+        raise ValueError("widths must be a non-empty sequence of positive ints, got [].")
+    for w in widths:
+        check_int(w, "widths", minimum=1)
     train, held_out = split_trajectories(data, fraction, generator)
     scores, fits = {}, {}
     for width in widths:

@@ -44,6 +44,8 @@ from torchrl.envs import (
     TransformedEnv,
 )
 
+from torchrl_options.checks import check_bool, check_distinct_keys, check_int, check_number
+
 __all__ = [
     "ATARI_GAMES",
     "PAPER_NUM_OPTIONS",
@@ -157,7 +159,12 @@ class RAMToFloat(ObservationTransform):
 
     def __init__(self, in_keys=("observation",), out_keys=None):
         in_keys = list(in_keys)
-        super().__init__(in_keys=in_keys, out_keys=list(out_keys) if out_keys is not None else in_keys)
+        out_keys = list(out_keys) if out_keys is not None else in_keys
+        if len(out_keys) != len(in_keys):
+            raise ValueError(f"RAMToFloat: out_keys must have one key per in_key, got {in_keys} and {out_keys}.")
+        # two inputs written to one output would overwrite each other (an input may be its own output)
+        check_distinct_keys({f"out_keys[{i}]": k for i, k in enumerate(out_keys)}, "RAMToFloat")
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
 
     def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
         return obs.to(torch.float32) / 255.0
@@ -251,6 +258,14 @@ def make_atari_ram_env(
         raise ValueError(f"ram_encoding must be 'bytes' or 'uint8', got {ram_encoding!r}.")
     if not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+    if not isinstance(game, str) or not game:
+        raise TypeError(f"game must be a game name such as 'Seaquest' (or an 'ALE/...' id), got {game!r}.")
+    check_number(repeat_action_probability, "repeat_action_probability", lo=0.0, hi=1.0)
+    check_int(noop_max, "noop_max", minimum=0)
+    check_int(max_episode_steps, "max_episode_steps", minimum=1, allow_none=True)
+    for name, flag in (("episodic_life", episodic_life), ("clip_rewards", clip_rewards),
+                       ("full_action_space", full_action_space), ("render", render)):  # fmt: skip
+        check_bool(flag, name)
     if num_envs > 1 and render:
         raise ValueError("render=True needs num_envs=1.")
     import ale_py
@@ -258,15 +273,18 @@ def make_atari_ram_env(
     gym.register_envs(ale_py)
 
     def make_game(vectorized: bool) -> gym.Env:
-        game_env = gym.make(
-            _env_id(game),
-            obs_type="ram",
-            frameskip=frame_skip,
-            repeat_action_probability=repeat_action_probability,
-            full_action_space=full_action_space,
-            render_mode="rgb_array" if render else None,
-            **gym_kwargs,
-        )
+        try:
+            game_env = gym.make(
+                _env_id(game),
+                obs_type="ram",
+                frameskip=frame_skip,
+                repeat_action_probability=repeat_action_probability,
+                full_action_space=full_action_space,
+                render_mode="rgb_array" if render else None,
+                **gym_kwargs,
+            )
+        except gym.error.NameNotFound as err:  # e.g. "Chess": gymnasium suggests the right name
+            raise ValueError(f"game {game!r}: no such Atari game ({_env_id(game)}): {err}") from None
         if episodic_life:
             game_env = EpisodicLife(game_env)
         if vectorized and noop_max > 0:
@@ -329,6 +347,9 @@ class RAMOneHotEncoder(nn.Module):
 
     def __init__(self, out_features: int, *, num_bytes: int = RAM_SIZE, bias: bool = True):
         super().__init__()
+        check_int(out_features, "out_features", minimum=1)
+        check_int(num_bytes, "num_bytes", minimum=1)
+        check_bool(bias, "bias")
         self.num_bytes = num_bytes
         self.out_features = out_features
         self.embedding = nn.EmbeddingBag(num_bytes * 256, out_features, mode="sum")
@@ -362,6 +383,8 @@ class RAMBytesEncoder(nn.Module):
 
     def __init__(self, out_features: int, *, num_bytes: int = RAM_SIZE):
         super().__init__()
+        check_int(out_features, "out_features", minimum=1)
+        check_int(num_bytes, "num_bytes", minimum=1)
         self.linear = nn.Linear(num_bytes, out_features)
 
     def forward(self, ram: torch.Tensor) -> torch.Tensor:
@@ -388,9 +411,14 @@ def ram_q_network(
         >>> net(torch.randint(0, 256, (2, 128), dtype=torch.uint8)).shape
         torch.Size([2, 6])
     """
+    check_int(num_actions, "num_actions", minimum=1)
+    if isinstance(num_cells, (str, bytes)) or not isinstance(num_cells, (tuple, list)):
+        raise TypeError(f"num_cells must be a list of layer widths, got {num_cells!r}.")
     cells = list(num_cells)
     if not cells:
         raise ValueError("num_cells needs at least one layer.")
+    for i, c in enumerate(cells):
+        check_int(c, f"num_cells[{i}]", minimum=1)
     if encoding == "one_hot":
         first: nn.Module = RAMOneHotEncoder(cells[0], num_bytes=num_bytes)
     elif encoding == "bytes":
@@ -407,9 +435,13 @@ def ram_q_network(
 def render_frame(env: EnvBase) -> np.ndarray:
     """The current RGB screen of an env made with ``make_atari_ram_env(..., render=True)`` (or any batched or
     transformed wrapper of it)."""
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"render_frame expects a TorchRL env (from make_atari_ram_env(..., render=True)), got {type(env).__name__}.")
     base = env
     while hasattr(base, "base_env"):
         base = base.base_env
+    if not hasattr(base, "_env") or not hasattr(base._env, "render"):
+        raise ValueError(f"render_frame: {type(base).__name__} wraps no gymnasium env to render.")
     return np.asarray(base._env.render())
 
 

@@ -19,6 +19,7 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from torchrl_options.checks import check_bool, check_number
 from torchrl_options.envs.maps import MOVES, GridMap, load_map
 
 __all__ = ["GridWorldEnv", "TASKS"]
@@ -193,14 +194,19 @@ class GridWorldEnv(EnvBase):
         )  # fmt: skip
         if isinstance(batch_size, int):
             batch_size = (batch_size,)
+        if not isinstance(batch_size, (tuple, list, torch.Size)) or any(
+            isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in batch_size
+        ):
+            raise ValueError(f"batch_size must be an int >= 1 or a sequence of them (or []), got {batch_size!r}.")
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.grid = load_map(grid)
         if task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {task!r}.")
-        if not 0.0 <= noise <= 1.0:
-            raise ValueError(f"noise must be a probability in [0, 1], got {noise}.")
-        if max_steps is not None and max_steps < 1:
+        check_number(noise, "noise", lo=0.0, hi=1.0)
+        if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1):
             raise ValueError(f"max_steps must be a positive int or None, got {max_steps}.")
+        for name, flag in (("one_hot", one_hot), ("normalize", normalize)):
+            check_bool(flag, name)
         self.task = task
         self.noise = float(noise)
         self.max_steps = max_steps

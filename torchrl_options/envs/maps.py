@@ -217,6 +217,8 @@ def detect_rooms(walls: Tensor) -> Tensor:
                 [-1, -1, -1, -1, -1, -1]])
     """
     free = ~torch.as_tensor(walls, dtype=torch.bool).cpu()
+    if free.ndim != 2:
+        raise ValueError(f"walls must be an [H, W] grid, got shape {list(free.shape)}.")
     H, W = free.shape
     block = free[:-1, :-1] & free[1:, :-1] & free[:-1, 1:] & free[1:, 1:]  # [H-1, W-1]: block at its top-left
     room_cell = torch.zeros(H, W, dtype=torch.bool)

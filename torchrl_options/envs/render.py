@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import colorsys
 import logging
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchrl_options.checks import check_int, check_number
 from torchrl_options.envs.maps import GridMap
 
 __all__ = [
@@ -64,6 +66,7 @@ def option_colors(k: int) -> list[Color]:
         >>> option_colors(2)
         [(230, 25, 25), (25, 230, 230)]
     """
+    check_int(k, "k", minimum=0)
     return [
         tuple(int(round(255 * v)) for v in colorsys.hsv_to_rgb(i / max(k, 1), 0.89, 0.9)) for i in range(k)
     ]
@@ -109,6 +112,7 @@ def draw_heatmap(
         values = full
     if values.shape != walls.shape:
         raise ValueError(f"values must be [H, W] = {walls.shape} or [F], got {values.shape}.")
+    check_int(cell_size, "cell_size", minimum=1)
     finite = np.isfinite(values) & ~walls
     if not finite.any():
         return image
@@ -154,7 +158,11 @@ def draw_trajectory(
         >>> int(image[5, 10].argmax())  # red, on the segment (0, 0) -> (0, 1)
         0
     """
-    points = _numpy(positions).reshape(-1, 2)
+    raw = _numpy(positions)
+    if raw.ndim != 2 or raw.shape[-1] != 2:
+        raise ValueError(f"positions must be [T, 2] (row, col) cells, got shape {list(raw.shape)}.")
+    check_int(cell_size, "cell_size", minimum=1)
+    points = raw.reshape(-1, 2)
     if len(points) == 0:
         return image
     thickness = max(cell_size // 8, 1) if thickness is None else thickness
@@ -207,6 +215,7 @@ def render_grid(
         >>> image[0, 0].tolist(), image[1 * 16 + 8, 1 * 16 + 8].tolist()  # a wall, the agent
         ([48, 48, 56], [40, 90, 220])
     """
+    check_int(cell_size, "cell_size", minimum=1)
     walls = _walls(grid)
     H, W = walls.shape
     image = np.empty((H * cell_size, W * cell_size, 3), dtype=np.uint8)
@@ -257,6 +266,9 @@ def write_video(frames: Sequence[np.ndarray], path: str | Path, fps: float = 8.0
     path = Path(path)
     if not frames:
         raise ValueError("write_video needs at least one frame.")
+    check_number(fps, "fps", lo=0.0, hi=math.inf, lo_open=True, hi_open=True)
+    if not path.parent.is_dir():
+        raise ValueError(f"{path}: cannot write the video: the folder {path.parent} does not exist.")
     height, width = frames[0].shape[:2]
     fourcc = cv2.VideoWriter_fourcc(*("MJPG" if path.suffix.lower() == ".avi" else "mp4v"))
     writer = cv2.VideoWriter(str(path), fourcc, fps, (width, height))

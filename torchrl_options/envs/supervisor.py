@@ -8,6 +8,7 @@ and supervisor noise).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.envs.utils import step_mdp
 
+from torchrl_options.checks import check_distinct_keys, check_int, check_number
 from torchrl_options.envs.gridworld import GridWorldEnv
 from torchrl_options.envs.maps import GridMap, load_map
 
@@ -73,8 +75,9 @@ def value_iteration(
         tensor([3., 2., 3., 3.], dtype=torch.float64)
     """
     grid = load_map(grid)
-    if not 0.0 <= noise < 1.0:
-        raise ValueError(f"noise must be in [0, 1) for value iteration, got {noise}.")
+    check_number(noise, "noise", lo=0.0, hi=1.0, hi_open=True)
+    check_number(tol, "tol", lo=0.0, hi=math.inf, hi_open=True)
+    check_int(max_iterations, "max_iterations", minimum=1)
     nxt = grid.next_cell  # [F, 4]
     F = grid.num_free
     is_target = torch.eye(F, dtype=torch.bool)
@@ -159,9 +162,11 @@ class ValueIterationSupervisor(TensorDictModuleBase):
             device = grid.device if device is None else device
             grid = grid.grid
         self.grid = load_map(grid)
+        check_number(noise, "noise", lo=0.0, hi=1.0, allow_none=True)
         self.noise = 0.3 if noise is None else float(noise)
-        if not 0.0 <= supervisor_noise <= 1.0:
-            raise ValueError(f"supervisor_noise must be in [0, 1], got {supervisor_noise}.")
+        check_number(supervisor_noise, "supervisor_noise", lo=0.0, hi=1.0)
+        check_distinct_keys({"agent_key": agent_key, "target_key": target_key, "action_key": action_key},
+                            "ValueIterationSupervisor")  # fmt: skip
         if tie_break not in ("random", "first"):
             raise ValueError(f"tie_break must be 'random' or 'first', got {tie_break!r}.")
         self.supervisor_noise = float(supervisor_noise)
@@ -259,6 +264,9 @@ def generate_demonstrations(
         >>> bool((lengths < 100).all()), bool((demos["next", "reward"].sum((1, 2)) == 1).all())
         (True, True)
     """
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    check_int(length, "length", minimum=1)
+    check_number(noise, "noise", lo=0.0, hi=1.0, allow_none=True)
     if isinstance(env_or_map, GridWorldEnv):
         overrides = dict(env_kwargs)
         if noise is not None:

@@ -148,6 +148,8 @@ def stratified_bootstrap_interval(
         >>> float(point), bool(low <= point <= high)
         (2.5, True)
     """
+    if not callable(statistic):
+        raise TypeError(f"statistic must be a callable of the score matrices, got {type(statistic).__name__}.")
     confidence = _check_confidence(confidence)
     if isinstance(num_resamples, bool) or not isinstance(num_resamples, (int, np.integer)) or num_resamples < 100:
         raise ValueError(f"num_resamples must be an integer >= 100, got {num_resamples!r}.")

@@ -34,6 +34,7 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import step_mdp
 
 from torchrl_options.agents.dqn import OptionsDQN, OptionsDQNConfig
+from torchrl_options.checks import check_number
 from torchrl_options.checkpoints import (
     atomic_replace,
     load_file,
@@ -57,6 +58,7 @@ __all__ = [
     "run_gridworld_cell",
     "cell_dir",
     "reach_table",
+    "apply_protocol",
     "run_gridworld_recipe",
     "run_gridworld_script",
     "write_option_pictures",
@@ -97,12 +99,15 @@ def cell_dir(out_dir: str | os.PathLike, *parts: str) -> Path:
 # ------------------------------------------------------------------------------------------------ trajectories
 @torch.no_grad()
 def greedy_trajectories(
-    policy: Callable, env_cfg: Mapping[str, Any], num: int, length: int, seed: int
+    policy: Callable, env_cfg: Mapping[str, Any], num: int, length: int, seed: int, *, epsilon: float = 0.0
 ) -> TensorDict:
     """``num`` trajectories of ``policy`` (run greedily), one episode per row, padded with a mask.
 
     Rows stop at their first episode end (or after ``length`` steps; the batch stops once every row has ended);
     ``("collector", "mask")`` marks the valid steps, as in :func:`~torchrl_options.envs.generate_demonstrations`.
+    With ``epsilon > 0`` the policy's action is replaced, with that probability at each step, by a uniformly random
+    one (drawn from a generator seeded by ``seed``); the recorded ``"action"`` is the one taken. The paper's
+    exploration setting uses ``epsilon=0`` (greedy trajectories).
 
     Examples:
         >>> from torchrl_options.envs import ValueIterationSupervisor
@@ -112,12 +117,21 @@ def greedy_trajectories(
         >>> data.shape[0], data.shape[1] <= 60, bool(data["collector", "mask"][:, 0].all())
         (3, True, True)
     """
+    check_number(epsilon, "epsilon", lo=0.0, hi=1.0)
     env = make_env({**dict(env_cfg), "max_steps": length}, num, seed)
+    num_actions = int(env.full_action_spec_unbatched["action"].n)
+    generator = torch.Generator().manual_seed(seed)
     steps, finished = [], torch.zeros(num, dtype=torch.bool)
     td = env.reset()
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(length):
-            td = env.step(policy(td))
+            td = policy(td)
+            if epsilon > 0:
+                explore = torch.rand(num, generator=generator) < epsilon
+                random_action = torch.randint(num_actions, (num,), generator=generator)
+                action = td.get("action")
+                td.set("action", torch.where(explore.reshape(action.shape), random_action.reshape(action.shape), action))
+            td = env.step(td)
             steps.append(td.exclude("action_value", "chosen_action_value"))
             finished |= td.get(("next", "done")).reshape(num)
             if finished.all():
@@ -142,23 +156,37 @@ def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
 
 
 # ------------------------------------------------------------------------------------------------ discovery
+#: the DDO settings a recipe's ``discovery.preset`` starts from; the section's own (non-null) keys override them
+DISCOVERY_PRESETS = ("paper", "defaults")
+_DISCOVERY_KEYS = ("num_cells", "termination_cells", "activation", "init", "batch_size", "lr", "m_steps", "restarts", "tol")
+
+
 def _discovery_kwargs(discovery: Mapping[str, Any]) -> dict[str, Any]:
     """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery.
 
-    What the section leaves out is the paper's setting (:data:`~torchrl_options.discovery.PAPER_SETTINGS`), not
-    :func:`~torchrl_options.discover_options`'s default, so that the recipes reproduce the paper's protocol.
+    ``discovery.preset`` says what the section leaves out (or sets to null): ``"paper"`` (the default when the
+    section has no preset) takes :data:`~torchrl_options.discovery.PAPER_SETTINGS`, so that the recipes reproduce the
+    paper's protocol; ``"defaults"`` takes :func:`~torchrl_options.discover_options`'s own defaults.
     """
-    return dict(
-        num_actions=4,
-        num_cells=discovery.get("num_cells", PAPER_SETTINGS["num_cells"]),
-        activation=discovery.get("activation", PAPER_SETTINGS["activation"]),
-        init=discovery.get("init", PAPER_SETTINGS["init"]),
-        batch_size=discovery.get("batch_size"),
-        lr=discovery.get("lr", PAPER_SETTINGS["lr"]),
-        m_steps=discovery.get("m_steps", PAPER_SETTINGS["m_steps"]),
-        restarts=discovery.get("restarts", PAPER_SETTINGS["restarts"]),
-        tol=discovery.get("tol", PAPER_SETTINGS["tol"]),
-    )
+    preset = discovery.get("preset") or "paper"
+    base = dict(PAPER_SETTINGS) if preset == "paper" else {}
+    base.pop("num_iterations", None)
+    base.pop("termination_cells", None)  # as before presets: the termination networks are num_cells wide unless set
+    kwargs = {"num_actions": 4, **{k: base[k] for k in _DISCOVERY_KEYS if k in base}}
+    for key in _DISCOVERY_KEYS:
+        if discovery.get(key) is not None:
+            kwargs[key] = discovery[key]
+    if isinstance(kwargs.get("num_cells"), list):
+        kwargs["num_cells"] = tuple(kwargs["num_cells"])
+    return kwargs
+
+
+def _discovery_iterations(discovery: Mapping[str, Any]) -> int:
+    """The most DDO iterations: the section's ``num_iterations``, else the preset's (paper: 500; defaults: 1000,
+    which the stopping rule usually ends sooner)."""
+    if discovery.get("num_iterations") is not None:
+        return int(discovery["num_iterations"])
+    return int(PAPER_SETTINGS["num_iterations"]) if (discovery.get("preset") or "paper") == "paper" else 1000
 
 
 def discover_cached(
@@ -183,7 +211,7 @@ def discover_cached(
         return load_options(path)
     data = trajectories() if callable(trajectories) else trajectories
     result = discover_options(
-        data, num_options, meta_control=meta_control, num_iterations=discovery["num_iterations"], seed=seed,
+        data, num_options, meta_control=meta_control, num_iterations=_discovery_iterations(discovery), seed=seed,
         progress=progress, return_info=True, desc=desc, **_discovery_kwargs(discovery),
     )  # fmt: skip
     final = result.history[-1] if result.history else {}
@@ -213,9 +241,10 @@ def discover_hierarchy_cached(
         logger.info("hierarchy: loading %s", path)
         return load_hierarchy(path)
     data = trajectories() if callable(trajectories) else trajectories
-    upper = discovery.get("upper_level_iterations", discovery["num_iterations"])
+    lower = _discovery_iterations(discovery)
+    upper = lower if discovery.get("upper_level_iterations") is None else int(discovery["upper_level_iterations"])
     hierarchy = discover_hierarchy(
-        data, num_options, meta_control=meta_control, num_iterations=[discovery["num_iterations"]]
+        data, num_options, meta_control=meta_control, num_iterations=[lower]
         + [upper] * (len(num_options) - 1), seed=seed, progress=progress, desc=desc, **_discovery_kwargs(discovery),
     )  # fmt: skip
     with atomic_replace(path) as tmp:
@@ -364,6 +393,30 @@ def _pretrained_agent(cfg: Mapping[str, Any], setting: str, seed: int, progress:
     return agent, path
 
 
+def _agent_rollouts(agent: OptionsDQN, cfg: Mapping[str, Any], rollouts: Mapping[str, Any], seed: int) -> TensorDict:
+    """The pre-trained agent's rollouts that DDO learns from, per a greedy setting's ``greedy`` section: ``num``
+    rollouts of ``length`` steps, with ``epsilon`` (``"agent"``: the agent's own final exploration rate; the paper:
+    0, greedy) and ``keep`` (``"all"``, the paper's; ``"rewarded"``: only the pieces that end in a reward,
+    :func:`~torchrl_options.data.rewarded_segments`)."""
+    from torchrl_options.data import rewarded_segments
+
+    epsilon = rollouts.get("epsilon", 0.0)
+    if epsilon == "agent":
+        epsilon = float(agent.config.eps_end)
+    data = greedy_trajectories(agent.actor, cfg["env"], rollouts["num"], rollouts["length"], 1000 * seed + 7,
+                               epsilon=float(epsilon))  # fmt: skip
+    if rollouts.get("keep", "all") == "rewarded":
+        reward = data.get(("next", "reward")).reshape(data.shape)
+        if not bool((reward[data.get(("collector", "mask"))] > 0).any()):
+            logger.warning(
+                "seed %d: none of the agent's %d rollouts is rewarded; DDO learns from all of them (keep: all).",
+                seed, data.shape[0],
+            )  # fmt: skip
+            return data
+        data = rewarded_segments(data)
+    return data
+
+
 def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
     """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache."""
     condition = cfg["conditions"][cell.condition]
@@ -384,8 +437,7 @@ def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
             if traj_path.exists():
                 return tensordict_from_plain(load_file(traj_path, what="trajectories file"), str(traj_path))
             agent, _ = _pretrained_agent(cfg, cell.setting, cell.seed, progress)
-            greedy = dict(setting["greedy"])
-            data = greedy_trajectories(agent.actor, cfg["env"], greedy["num"], greedy["length"], 1000 * cell.seed + 7)
+            data = _agent_rollouts(agent, cfg, dict(setting["greedy"]), cell.seed)
             save_file(tensordict_to_plain(data), traj_path)
             return data
 
@@ -492,6 +544,49 @@ RUN_ONLY_SETTINGS = (
 )  # fmt: skip
 
 
+PROTOCOLS = ("ours", "paper")
+
+
+def apply_protocol(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The recipe config with its ``protocol`` applied: ``"ours"`` (the default) drops every section's ``paper``
+    sub-section; ``"paper"`` merges each ``paper`` sub-section into its section (recursively), so that one
+    setting, ``protocol=paper``, gives back the paper's protocol (its DDO settings, its greedy rollouts) where the
+    recipe's defaults are the ones measured best (``docs/experiments/gridworld.md``).
+
+    Examples:
+        >>> cfg = {"protocol": "paper", "discovery": {"preset": "defaults", "num_options": 4, "paper": {"preset": "paper"}}}
+        >>> apply_protocol(cfg)["discovery"]
+        {'preset': 'paper', 'num_options': 4}
+        >>> apply_protocol({**cfg, "protocol": "ours"})["discovery"]
+        {'preset': 'defaults', 'num_options': 4}
+    """
+    from torchrl_options.experiments.validation import SettingError
+
+    protocol = cfg.get("protocol", "ours")
+    if protocol not in PROTOCOLS:
+        raise SettingError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}.")
+
+    def resolve(section: Any, name: str) -> Any:
+        if not isinstance(section, Mapping):
+            return section
+        out = {k: resolve(v, f"{name}.{k}" if name else k) for k, v in section.items() if k != "paper"}
+        paper = section.get("paper")
+        if paper is not None and protocol == "paper":
+            if not isinstance(paper, Mapping):
+                raise SettingError(f"{name + '.' if name else ''}paper must be a section of the paper's settings, got {paper!r}.")
+            out = _merge(out, {k: resolve(v, f"{name}.paper.{k}") for k, v in paper.items()})
+        return out
+
+    return resolve(dict(cfg), "")
+
+
+def _merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        out[key] = _merge(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), Mapping) else value
+    return out
+
+
 def run_gridworld_recipe(cfg: Mapping[str, Any], title: str, *, quiet_console: bool = False) -> str | None:
     """What every GridWorld recipe does: the sweep over (setting, condition, seed), then the outputs.
 
@@ -505,7 +600,7 @@ def run_gridworld_recipe(cfg: Mapping[str, Any], title: str, *, quiet_console: b
     """
     from torchrl_options.experiments.recipe_runner import log_to_file
 
-    cfg = dict(cfg)
+    cfg = apply_protocol(cfg)  # protocol=paper: the paper's settings where they differ from the recipe's defaults
     check_gridworld_settings(cfg)  # every setting, before any work starts
     out = Path(cfg["out_dir"])
     log_file = cfg.get("log_file") or "recipe.log"

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from torchrl_options.checks import check_int, check_number
 from torchrl_options.experiments.aggregates import Aggregates, METHOD as AGGREGATE_METHOD
 from torchrl_options.experiments.intervals import METHOD as INTERVAL_METHOD, t_intervals
 from torchrl_options.experiments.results import condition_rank, ResultsLog, smooth
@@ -45,6 +46,8 @@ def plot_curves(
         >>> fig.axes[0].get_xlabel(), fig.axes[0].get_legend() is not None
         ('episode', True)
     """
+    check_int(smooth_window, "smooth_window", minimum=1)
+    check_number(confidence, "confidence", lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     rows = log.rows()
     data: dict[str, dict[str, dict[int, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     rank = condition_rank(condition_order)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchrl_options.checkpoints import atomic_replace
+from torchrl_options.checks import check_int, check_number, check_numbers
 from torchrl_options.experiments.intervals import (
     interval_verdict,
     mean_interval,
@@ -65,21 +66,41 @@ class ResultsLog:
     """
 
     def __init__(self, path: str | os.PathLike) -> None:
+        if not isinstance(path, (str, os.PathLike)):
+            raise TypeError(f"ResultsLog: path must be a str or a path, got {type(path).__name__}.")
+        if os.path.isdir(path):
+            raise ValueError(f"ResultsLog: {os.fspath(path)} is a directory; expected a CSV file name (results.csv).")
         self.path = os.fspath(path)
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         if not os.path.exists(self.path):
-            with open(self.path, "w", newline="") as f:
+            with atomic_replace(self.path) as tmp, open(tmp, "w", newline="") as f:  # never half a header
                 csv.writer(f).writerow(FIELDS)
 
     def rows(self) -> list[dict]:
+        """Every row, with ``seed``, ``episode`` (ints), ``return`` (float) and ``frames`` (int or ``None``).
+
+        Raises:
+            ValueError: naming the file and the line, for a header without the columns :data:`FIELDS` or a row
+                whose numbers do not parse.
+        """
         with open(self.path, newline="") as f:
             reader = csv.DictReader(f)
+            missing = [c for c in ("setting", "condition", "seed", "episode", "return") if c not in (reader.fieldnames or [])]
+            if missing:
+                raise ValueError(
+                    f"{self.path}: not a results file (expected the CSV columns {FIELDS}, the header lacks {missing})."
+                )
             out = []
             for row in reader:
-                row["seed"] = int(row["seed"])
-                row["episode"] = int(row["episode"])
-                row["return"] = float(row["return"])
-                row["frames"] = int(row["frames"]) if row.get("frames") not in (None, "") else None
+                try:
+                    row["seed"] = int(row["seed"])
+                    row["episode"] = int(row["episode"])
+                    row["return"] = float(row["return"])
+                    row["frames"] = int(row["frames"]) if row.get("frames") not in (None, "") else None
+                except (TypeError, ValueError) as err:
+                    raise ValueError(
+                        f"{self.path}, line {reader.line_num}: not a valid results row ({err}); expected {FIELDS}."
+                    ) from None
                 out.append(row)
         return out
 
@@ -110,6 +131,11 @@ class ResultsLog:
         done = self.done_cells()
         lines = []
         for setting, condition, seed, returns, frames in cells:
+            for name, value in (("setting", setting), ("condition", condition)):
+                if not isinstance(value, str) or not value:
+                    raise TypeError(f"{name} must be a non-empty str, got {value!r}.")
+            check_int(seed, "seed", minimum=0)
+            returns = check_numbers(returns, "returns", allow_empty=False)  # NaN would spoil every statistic
             if (setting, condition, int(seed)) in done:
                 raise ValueError(f"cell ({setting!r}, {condition!r}, seed={seed}) is already in {self.path}.")
             if frames is not None and len(frames) != len(returns):
@@ -266,6 +292,8 @@ def episodes_to_reach(returns: Sequence[float], target: float, window: int) -> i
         >>> episodes_to_reach([0, 0, 1, 1, 1, 1], target=1.0, window=2)
         4
     """
+    check_int(window, "window", minimum=1)
+    check_number(target, "target")
     s = smooth(returns, window)
     hit = np.nonzero(s >= target - 1e-12)[0]
     hit = hit[hit >= min(window, len(s)) - 1]
@@ -283,6 +311,12 @@ class ConditionSummary:
     final_return: tuple[float, float, float]
     episodes_to_baseline: tuple[float, float, float] | None
     reached: int
+
+
+def _check_summary_settings(*, confidence: float, **windows: int) -> None:
+    for name, value in windows.items():
+        check_int(value, name, minimum=1)
+    check_number(confidence, "confidence", lo=0.0, hi=1.0, lo_open=True, hi_open=True)
 
 
 def condition_rank(condition_order: Sequence[str] | None) -> Callable[[str], tuple[int, str]]:
@@ -341,6 +375,7 @@ def summarize(
         >>> print(summary_markdown(summarize(rows, final_window=2, smooth_window=2), final_window=2).splitlines()[2])
         | s | A | 1 | 10 | 1.000 [-inf, inf] | 8 [2, 10] | 1/1 |
     """
+    _check_summary_settings(final_window=final_window, smooth_window=smooth_window, confidence=confidence)
     curves, order = _return_curves(log, condition_order)
     targets = {}
     for (setting, condition), seeds in curves.items():
@@ -433,6 +468,7 @@ def compare_to_baseline(
         >>> [(c.condition, c.difference[0], c.verdict, c.num_seeds) for c in compare_to_baseline(rows)]
         [('H1u', 0.5, 'ahead', 3)]
     """
+    _check_summary_settings(final_window=final_window, confidence=confidence)
     curves, order = _return_curves(log, condition_order)
     out = []
     for setting, condition in order:

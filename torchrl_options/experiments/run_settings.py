@@ -16,6 +16,9 @@ import os
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from torchrl_options.checkpoints import CheckpointFileError, load_json_file, save_json_file
+from torchrl_options.checks import check_bool
+
 __all__ = [
     "check_run_settings",
     "describe_differences",
@@ -70,8 +73,10 @@ def read_run_settings(out_dir: str | os.PathLike) -> dict[str, Any] | None:
     path = os.path.join(out_dir, SETTINGS_FILE)
     if not os.path.exists(path):
         return None
-    with open(path) as f:
-        return json.load(f)
+    settings = load_json_file(path, what="run settings")
+    if not isinstance(settings, dict):
+        raise CheckpointFileError(f"{path}: expected the run settings as a JSON object, got {type(settings).__name__}.")
+    return settings
 
 
 def settings_differences(recorded: Mapping[str, Any], now: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
@@ -146,6 +151,9 @@ def check_run_settings(
         ...
         ValueError: out_dir ... holds a run made with other settings: episodes: 200 there, 1000 now. ...
     """
+    if not isinstance(settings, Mapping):
+        raise TypeError(f"settings must be a mapping (e.g. OmegaConf.to_container(cfg)), got {type(settings).__name__}.")
+    check_bool(allow_changes, "allow_changes")
     os.makedirs(out_dir, exist_ok=True)
     now = flatten_settings(settings, ignore=ignore)
     recorded = read_run_settings(out_dir)
@@ -169,5 +177,4 @@ def write_run_settings(out_dir: str | os.PathLike, settings: Mapping[str, Any]) 
     """Writes ``<out_dir>/settings.json`` (flattened, sorted); :func:`check_run_settings` and
     :func:`~torchrl_options.experiments.merge_results` call it."""
     os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, SETTINGS_FILE), "w") as f:
-        json.dump(flatten_settings(settings), f, indent=1, sort_keys=True)
+    save_json_file(flatten_settings(settings), os.path.join(out_dir, SETTINGS_FILE), indent=1, sort_keys=True)

@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from torchrl_options.checks import check_callable, check_choice, check_int, check_numbers
 from torchrl_options.experiments.results import ResultsLog
 
 __all__ = ["Cell", "CellResult", "run_sweep"]
@@ -32,6 +33,13 @@ class Cell:
     condition: str
     seed: int
 
+    def __post_init__(self) -> None:
+        for name in ("setting", "condition"):
+            value = getattr(self, name)
+            if not isinstance(value, str) or not value:
+                raise TypeError(f"Cell: {name} must be a non-empty str, got {value!r}.")
+        check_int(self.seed, "Cell: seed", minimum=0)
+
     @property
     def name(self) -> str:
         return f"{self.setting}-{self.condition}-seed{self.seed}"
@@ -44,6 +52,19 @@ class CellResult:
     returns: list[float]
     frames: list[int] | None = None
     info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # a NaN return would be averaged into every statistic of the run without a word
+        check_numbers(self.returns, "CellResult: returns")
+        if self.frames is not None:
+            if isinstance(self.frames, (str, bytes)) or not isinstance(self.frames, Sequence):
+                raise TypeError(f"CellResult: frames must be None or a list of ints, got {type(self.frames).__name__}.")
+            if len(self.frames) != len(self.returns):
+                raise ValueError(
+                    f"CellResult: frames has {len(self.frames)} entries but returns has {len(self.returns)} (one per episode)."
+                )
+        if not isinstance(self.info, dict):
+            raise TypeError(f"CellResult: info must be a dict, got {type(self.info).__name__}.")
 
 
 _IN_CELL = False  # in a pool worker: whether a cell is running (Ctrl-C stops a cell, never an idle worker)
@@ -124,6 +145,21 @@ def run_sweep(
         >>> len(ran), len(run_sweep(_constant_cell, cells, log))  # the second run skips both
         (2, 0)
     """
+    check_callable(fn, "fn")
+    check_choice(backend, "backend", ("serial", "local", "ray"))
+    check_int(num_workers, "num_workers", minimum=1, allow_none=True)
+    check_int(threads_per_worker, "threads_per_worker", minimum=1, allow_none=True)
+    check_callable(on_result, "on_result", allow_none=True)
+    if not isinstance(log, ResultsLog):
+        raise TypeError(f"log must be a ResultsLog, got {type(log).__name__}.")
+    if isinstance(cells, (str, bytes)) or not isinstance(cells, Sequence):
+        raise TypeError(f"cells must be a sequence of Cell, got {type(cells).__name__}.")
+    for i, cell in enumerate(cells):
+        if not isinstance(cell, Cell):
+            raise TypeError(f"cells[{i}] must be a Cell, got {type(cell).__name__}.")
+    if len(set(cells)) != len(cells):
+        repeated = sorted({c.name for c in cells if cells.count(c) > 1})
+        raise ValueError(f"cells must not repeat a cell (its results would be written twice), got {repeated} twice or more.")
     done = log.done_cells()
     todo = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
     skipped = len(cells) - len(todo)
@@ -131,6 +167,8 @@ def run_sweep(
         logger.info("sweep: %d finished cells found in %s, %d to run", skipped, log.path, len(todo))
 
     def record(cell: Cell, result: CellResult) -> None:
+        if not isinstance(result, CellResult):
+            raise TypeError(f"fn must return a CellResult, it returned {type(result).__name__} for cell {cell.name}.")
         log.append_cell(cell.setting, cell.condition, cell.seed, result.returns, result.frames)
         if on_result is not None:
             on_result(cell, result)

@@ -111,20 +111,29 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
             greedy = _section(setting, "greedy")
             _int(greedy, "num", f"settings.{name}.greedy.num", 1)
             _int(greedy, "length", f"settings.{name}.greedy.length", 1)
+            if greedy.get("epsilon", 0.0) != "agent":
+                _number({"epsilon": greedy.get("epsilon", 0.0)}, "epsilon", f"settings.{name}.greedy.epsilon (or 'agent')", 0, 1)
+            _choice(greedy.get("keep", "all"), f"settings.{name}.greedy.keep", ("all", "rewarded"))
     discovery = _section(cfg, "discovery")
     _int(discovery, "num_options", "discovery.num_options", 1)
-    _int(discovery, "num_iterations", "discovery.num_iterations", 0)
+    _choice(discovery.get("preset", "paper"), "discovery.preset", ("paper", "defaults"))
+    _int(discovery, "num_iterations", "discovery.num_iterations", 0, allow_none=True)
+    _int(discovery, "m_steps", "discovery.m_steps", 1, allow_none=True)
+    _int(discovery, "restarts", "discovery.restarts", 1, allow_none=True)
     _int(discovery, "upper_level_iterations", "discovery.upper_level_iterations", 0, allow_none=True)
     _int(discovery, "batch_size", "discovery.batch_size", 1, allow_none=True)
-    _number(discovery, "lr", "discovery.lr", 0, float("inf"), lo_open=True)
-    _choice(discovery.get("init", "random"), "discovery.init", ("random", "kmeans"))
+    if discovery.get("lr") is not None:
+        _number(discovery, "lr", "discovery.lr", 0, float("inf"), lo_open=True)
+    if discovery.get("tol") is not None:
+        _number(discovery, "tol", "discovery.tol", 0, float("inf"))
+    _choice(discovery.get("init") or "random", "discovery.init", ("random", "kmeans", "segments", "auto"))
     from torchrl_options.modules._features import activation_class
 
     try:
-        activation_class(discovery.get("activation", "tanh"))
+        activation_class(discovery.get("activation") or "tanh")
     except (ValueError, TypeError) as err:
         raise SettingError(f"discovery.{err}") from None
-    cells = discovery.get("num_cells", 2)
+    cells = discovery.get("num_cells") or 2
     if not (isinstance(cells, int) and not isinstance(cells, bool) and cells >= 1) and not (
         isinstance(cells, (list, tuple)) and all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in cells)
     ):
@@ -182,6 +191,7 @@ def _check_dqn(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"dqn.{err}") from None
     except ValueError as err:
         raise SettingError(f"dqn.{err}") from None
+    _check_frames_per_batch(cfg, "dqn")
 
 
 def _check_ppo(cfg: Mapping[str, Any]) -> None:
@@ -198,6 +208,18 @@ def _check_ppo(cfg: Mapping[str, Any]) -> None:
         raise SettingError(f"ppo.{err}") from None
     except ValueError as err:
         raise SettingError(f"ppo.{err}") from None
+    _check_frames_per_batch(cfg, "ppo")
+
+
+def _check_frames_per_batch(cfg: Mapping[str, Any], section: str) -> None:
+    """The recipes run ``num_envs`` grids in one batched env: a collector batch must be whole steps of all of them
+    (the agents refuse it too, but only once a cell starts)."""
+    frames, num_envs = cfg[section].get("frames_per_batch"), cfg.get("num_envs")
+    if isinstance(frames, int) and isinstance(num_envs, int) and num_envs >= 1 and frames % num_envs:
+        raise SettingError(
+            f"{section}.frames_per_batch must be a multiple of num_envs ({num_envs}), got {frames}: a batch holds whole "
+            "steps of every env."
+        )
 
 
 def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> None:

@@ -8,21 +8,16 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torchrl.data import ReplayBuffer
 
 from torchrl_options.checkpoints import restores_global_rng
-from torchrl_options.discovery._validation import check_step_data
+from torchrl_options.checks import check_int
+from torchrl_options.discovery.batch import discovery_batch, infer_in_features, minibatch
+from torchrl_options.discovery.fit import fit_ddo
+from torchrl_options.discovery.networks import check_networks, Networks, resolve_settings
+from torchrl_options.discovery.settings import check_stopping_rule, DEFAULT_RESTARTS, DiscoverySettings, obs_key_list
+from torchrl_options.discovery.stages import best_of_starts, run_discovery, Start
 from torchrl_options.discovery.tabulated import expected_counts, tabulate_states
-from torchrl_options.discovery.discover import (
-    DEFAULT_RESTARTS,
-    _check_m_steps,
-    _check_tol,
-    _infer_in_features,
-    as_trajectory_batch,
-    converged_at,
-    discover_options,
-    fit_ddo,
-    minibatch,
-)
 from torchrl_options.hierarchy.hierarchy import OptionHierarchy
 from torchrl_options.hierarchy.loss import HierarchicalDDOLoss
 from torchrl_options.modules import MetaControlMLP, OptionsMLP
@@ -30,9 +25,6 @@ from torchrl_options.modules import MetaControlMLP, OptionsMLP
 __all__ = ["discover_hierarchy", "HierarchyDiscoveryResult"]
 
 logger = logging.getLogger(__name__)
-
-_MASK = ("collector", "mask")
-
 
 @dataclass
 class HierarchyDiscoveryResult:
@@ -167,107 +159,117 @@ def discover_hierarchy(
     iterations = _per_level(num_iterations, levels, "num_iterations")
     m_steps = _per_level(m_steps, levels, "m_steps")
     restarts = _per_level(restarts, levels, "restarts")
+    for n in iterations:
+        check_int(n, "num_iterations", minimum=0)
     # None: several short starts (as discover_options) where the level's iterations leave room for them
     restarts = [
-        (DEFAULT_RESTARTS if isinstance(n_iter, int) and n_iter >= DEFAULT_RESTARTS * restart_iterations else 1)
-        if n is None else n
+        (DEFAULT_RESTARTS if n_iter >= DEFAULT_RESTARTS * restart_iterations else 1) if n is None else n
         for n, n_iter in zip(restarts, iterations)
     ]
-    for n in iterations:
-        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-            raise ValueError(f"num_iterations must be ints >= 0, got {n!r}.")
     for m in m_steps:
-        _check_m_steps(m)
-    _check_tol(tol, patience)
-    for n, n_iter in zip(restarts, iterations):
-        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-            raise ValueError(f"restarts must be positive ints, got {n!r}.")
-        if n > 1 and (not isinstance(restart_iterations, int) or restart_iterations < 1):
-            raise ValueError(f"restart_iterations must be a positive int when restarts > 1, got {restart_iterations!r}.")
-    obs_keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
+        check_int(m, "m_steps", minimum=1)
+    check_stopping_rule(tol, patience)
+    for n in restarts:
+        check_int(n, "restarts", minimum=1)
+        if n > 1:
+            check_int(restart_iterations, "restart_iterations", minimum=1)
+    obs_keys = obs_key_list(obs_keys)
     generator = torch.Generator()
     if seed is not None:
         torch.manual_seed(seed)
         generator.manual_seed(seed)
 
-    data = as_trajectory_batch(trajectories)
-    check_step_data(data, obs_keys=obs_keys, action_key=action_key, num_actions=num_actions)
-    if device is None:
-        device = data.device if data.device is not None else torch.device("cpu")
-    device = torch.device(device)
-    data = data.to(device)
-    mask = data.get(_MASK)
+    # the door: the trajectories batched and checked once, on the device; every level trains on this batch
+    if isinstance(trajectories, ReplayBuffer):
+        raise TypeError("discover_hierarchy needs the trajectories as tensordicts (a [B, T] batch or a list), got a ReplayBuffer.")
+    door = DiscoverySettings(num_options[0], num_actions=num_actions, obs_keys=obs_keys, action_key=action_key,
+                             device=device)  # fmt: skip
+    batch = discovery_batch(trajectories, door, infer_num_actions=False)
+    data = batch.data
     if hierarchy is not None:
         if num_actions is not None and num_actions != hierarchy.num_actions:
             raise ValueError(f"num_actions={num_actions} but the given hierarchy has num_actions={hierarchy.num_actions}.")
         num_actions = hierarchy.num_actions
     if num_actions is None:
-        num_actions = int(data.get(action_key)[mask].max()) + 1
+        num_actions = int(data.get(action_key)[batch.mask].max()) + 1
         logger.info("num_actions not given: using max(action) + 1 = %d", num_actions)
-    if hierarchy is None:
-        hierarchy = OptionHierarchy(num_actions)
-    hierarchy = hierarchy.to(device)
-    in_features = _infer_in_features(data, obs_keys)
+    batch.num_actions = num_actions
+    hierarchy = OptionHierarchy(num_actions) if hierarchy is None else hierarchy
+    hierarchy = hierarchy.to(batch.device)
     history: list[list[dict]] = []
     restart_lls: list[list[float]] = []
-
     for d, (K, meta, n_iter, m, n_restarts) in enumerate(zip(num_options, metas, iterations, m_steps, restarts)):
         level = hierarchy.num_levels + 1
+        settings = DiscoverySettings(
+            K, meta_control=meta, num_actions=num_actions, obs_keys=obs_keys, action_key=action_key,
+            num_cells=num_cells, activation=activation, architecture=architecture, init=init, num_iterations=n_iter,
+            m_steps=m, tol=tol, patience=patience, restarts=n_restarts,
+            restart_iterations=min(restart_iterations, n_iter), batch_size=batch_size, lr=lr,
+            seed=None if seed is None else seed + d, progress=progress, log_every=log_every, desc=desc,
+        )  # fmt: skip
         if level == 1:
-            # unwrapped: this call's own seeding is restored by the decorator of discover_hierarchy, not here
-            result = discover_options.__wrapped__(
-                data, K, meta_control=meta, num_actions=num_actions, obs_keys=obs_keys, action_key=action_key,
-                num_cells=num_cells, activation=activation, architecture=architecture, init=init,
-                num_iterations=n_iter, m_steps=m, tol=tol, patience=patience, restarts=n_restarts,
-                restart_iterations=min(restart_iterations, n_iter), batch_size=batch_size, optimizer=optimizer, lr=lr,
-                device=device, seed=None if seed is None else seed + d, progress=progress, return_info=True,
-                log_every=log_every,
-            )  # fmt: skip
-            hierarchy.append(result.options, meta_control=result.meta_control)
-            history.append(result.history)
-            restart_lls.append(result.restart_log_likelihoods)
-            continue
-        candidates = []
-        for r in range(n_restarts):
-            options = OptionsMLP(
-                in_features, hierarchy.action_space_sizes[-1], K, num_cells=num_cells, activation=activation,
-                architecture=architecture, in_keys=obs_keys,
-            ).to(device)
-            meta_module = None
-            if meta == "learned":
-                meta_module = MetaControlMLP(
-                    in_features, K, num_cells=num_cells, activation=activation, in_keys=obs_keys
-                ).to(device)
-            loss_module = HierarchicalDDOLoss(options, hierarchy, meta_module, diagnostics=False)
-            loss_module.set_keys(action=action_key)
-            params = list(options.parameters()) + (list(meta_module.parameters()) if meta_module is not None else [])
-            opt = torch.optim.Adam(params, lr=lr, foreach=True) if optimizer is None else optimizer(params, lr=lr)
-            first = min(restart_iterations, n_iter) if n_restarts > 1 else n_iter
-            label = f"{desc} start {r + 1}/{n_restarts}" if n_restarts > 1 else desc
-            records = _train(loss_module, opt, data, first, batch_size, generator, progress, log_every, level,
-                             m_steps=m, tol=tol, patience=patience, desc=label)  # fmt: skip
-            candidates.append((records[-1]["log_likelihood_per_step"] if records else float("-inf"), r, loss_module,
-                               opt, records))  # fmt: skip
-        _, best, loss_module, opt, records = max(candidates, key=lambda c: (c[0], -c[1]))
-        if n_restarts > 1:
-            logger.info("level %d: start %d of %d has the best log-likelihood per step (%s)", level, best + 1,
-                        n_restarts, ", ".join(f"{c[0]:.4f}" for c in candidates))  # fmt: skip
-            lls = [h["log_likelihood_per_step"] for h in records]
-            stopped = tol is not None and converged_at(lls, tol, patience) is not None
-            if not stopped and n_iter > len(records):
-                records = records + _train(loss_module, opt, data, n_iter - len(records), batch_size, generator,
-                                           progress, log_every, level, m_steps=m, tol=tol, patience=patience,
-                                           desc=desc)  # fmt: skip
-        restart_lls.append([c[0] for c in candidates] if n_restarts > 1 else [])
+            options, meta_module, records, lls = _first_level(batch, settings, optimizer)
+        else:
+            options, meta_module, records, lls = _upper_level(batch, settings, hierarchy, level, optimizer, generator)
+        hierarchy.append(options, meta_control=meta_module)
         history.append(records)
-        hierarchy.append(loss_module.options, meta_control=loss_module.meta_control)
+        restart_lls.append(lls)
     if return_info:
         return HierarchyDiscoveryResult(hierarchy=hierarchy, history=history, restart_log_likelihoods=restart_lls)
     return hierarchy
 
 
+def _first_level(batch, settings: DiscoverySettings, optimizer) -> tuple:
+    """Level 1: DDO over the primitive actions, the stages of :func:`~torchrl_options.discover_options` on the
+    checked batch, seeded by the level's seed (the global RNG runs on from there to the next level)."""
+    networks = Networks(optimizer=optimizer)
+    settings = resolve_settings(settings, networks)
+    check_networks(settings, networks)
+    generator = torch.Generator()
+    if settings.seed is not None:
+        torch.manual_seed(settings.seed)
+        generator.manual_seed(settings.seed)
+    result = run_discovery(batch, settings.replace(desc="DDO"), networks, generator)
+    return result.options, result.meta_control, result.history, result.restart_log_likelihoods
+
+
+def _upper_level(batch, settings: DiscoverySettings, hierarchy: OptionHierarchy, level: int, optimizer,
+                 generator: torch.Generator) -> tuple:  # fmt: skip
+    """Level ``level`` over the actions and the options below (fixed): :class:`HierarchicalDDOLoss`, the same
+    choice among starts (:func:`~torchrl_options.discovery.stages.best_of_starts`)."""
+    data, obs_keys, K = batch.data, settings.obs_key_list, settings.num_options
+    in_features = infer_in_features(data, obs_keys)
+
+    def make(r: int) -> Start:
+        options = OptionsMLP(
+            in_features, hierarchy.action_space_sizes[-1], K, num_cells=settings.num_cells,
+            activation=settings.activation, architecture=settings.architecture, in_keys=obs_keys,
+        ).to(batch.device)  # fmt: skip
+        meta_module = None
+        if settings.meta_control == "learned":
+            meta_module = MetaControlMLP(in_features, K, num_cells=settings.num_cells, activation=settings.activation,
+                                         in_keys=obs_keys).to(batch.device)  # fmt: skip
+        loss_module = HierarchicalDDOLoss(options, hierarchy, meta_module, diagnostics=False)
+        loss_module.set_keys(action=settings.action_key)
+        params = list(options.parameters()) + (list(meta_module.parameters()) if meta_module is not None else [])
+        opt = torch.optim.Adam(params, lr=settings.lr, foreach=True) if optimizer is None else optimizer(params, lr=settings.lr)
+        return Start(loss_module, opt)
+
+    def train(start: Start, n: int, label: str, final: bool) -> list[dict]:
+        return _train(start.loss_module, start.optimizer, data, n, settings.batch_size, generator, settings.progress,
+                      settings.log_every, level, m_steps=settings.m_steps, tol=settings.tol,
+                      patience=settings.patience, desc=label)  # fmt: skip
+
+    start, records, lls = best_of_starts(
+        make, train, restarts=settings.restarts, restart_iterations=settings.restart_iterations,
+        num_iterations=settings.num_iterations, tol=settings.tol, patience=settings.patience, desc=settings.desc,
+        what=f"level {level}",
+    )  # fmt: skip
+    return start.loss_module.options, start.loss_module.meta_control, records, lls
+
+
 class HierarchicalEStep:
-    """The E-step of :class:`HierarchicalDDOLoss` for :func:`~torchrl_options.discovery.discover.fit_ddo`, with a
+    """The E-step of :class:`HierarchicalDDOLoss` for :func:`~torchrl_options.discovery.fit.fit_ddo`, with a
     G-step objective that several optimizer steps can reuse (a generalised EM).
 
     ``estep(batch)`` runs the exact hierarchical forward-backward once and returns ``(record, objective)``:

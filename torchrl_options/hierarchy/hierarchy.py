@@ -4,12 +4,11 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
-import torch
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from torchrl_options.checkpoints import load_file
-from torchrl_options.discovery.serialization import module_from_dict, module_to_dict
+from torchrl_options.discovery.serialization import check_metadata, describe_payload, module_from_dict, module_to_dict, write_payload
 
 __all__ = ["OptionHierarchy", "load_hierarchy", "save_hierarchy"]
 
@@ -59,9 +58,14 @@ class OptionHierarchy(nn.Module):
         num_options: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
-        if not isinstance(num_actions, int) or num_actions < 1:
+        if isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1:
             raise ValueError(f"num_actions must be a positive int, got {num_actions!r}.")
+        if isinstance(levels, (str, bytes, TensorDictModuleBase)) or not isinstance(levels, Sequence):
+            raise TypeError(f"levels must be a sequence of options modules (level 1 first), got {type(levels).__name__}.")
         levels = list(levels)
+        for name, seq in (("meta_controls", meta_controls), ("num_options", num_options)):
+            if seq is not None and (isinstance(seq, (str, bytes)) or not isinstance(seq, Sequence)):
+                raise TypeError(f"{name} must be None or a sequence with one entry per level, got {type(seq).__name__}.")
         if meta_controls is not None and len(meta_controls) != len(levels):
             raise ValueError(f"meta_controls has {len(meta_controls)} entries for {len(levels)} levels.")
         if num_options is not None and len(num_options) != len(levels):
@@ -87,8 +91,17 @@ class OptionHierarchy(nn.Module):
         """Adds a level on top: ``options`` must choose among :attr:`action_space_sizes` ``[-1]`` actions."""
         level = self.num_levels + 1
         expected = self.action_space_sizes[-1]
+        if not isinstance(options, TensorDictModuleBase):
+            raise TypeError(
+                f"level {level}: the options must be a TensorDictModuleBase (writing option_logits and "
+                f"termination_logits), got {type(options).__name__}."
+            )
+        if meta_control is not None and not isinstance(meta_control, TensorDictModuleBase):
+            raise TypeError(
+                f"level {level}: meta_control must be None or a TensorDictModuleBase, got {type(meta_control).__name__}."
+            )
         k = num_options if num_options is not None else getattr(options, "num_options", None)
-        if not isinstance(k, int) or k < 1:
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(
                 f"level {level}: cannot tell how many options the module has; pass num_options (got {k!r})."
             )
@@ -126,23 +139,41 @@ class OptionHierarchy(nn.Module):
             sizes.append(sizes[-1] + k)
         return sizes
 
+    def _check_level(self, level: int) -> None:
+        if isinstance(level, bool) or not isinstance(level, int):
+            raise TypeError(f"level must be an int (1-based), got {level!r} ({type(level).__name__}).")
+        if not 1 <= level <= self.num_levels:
+            if not self.num_levels:
+                raise ValueError(f"the hierarchy has no level yet, got level {level}.")
+            raise ValueError(f"level must be in [1, {self.num_levels}] (the hierarchy's levels), got {level}.")
+
     def options(self, level: int) -> TensorDictModuleBase:
         """The options module of ``level`` (1-based); its ``option_logits`` are over ``action_space_sizes[level-1]``."""
-        if not 1 <= level <= self.num_levels:
-            raise ValueError(f"level must be in [1, {self.num_levels}], got {level}.")
+        self._check_level(level)
         return self.levels[level - 1]
 
     def meta_control(self, level: int) -> TensorDictModuleBase | None:
         """The meta-control used when discovering ``level`` (``None``: uniform)."""
-        if not 1 <= level <= self.num_levels:
-            raise ValueError(f"level must be in [1, {self.num_levels}], got {level}.")
+        self._check_level(level)
         m = self.meta_controls[level - 1]
         return None if isinstance(m, _NoMetaControl) else m
 
     def option_index(self, level: int, option: int) -> int:
-        """The action index of ``option`` of ``level`` in the augmented spaces above it."""
+        """The action index of ``option`` of ``level`` in the augmented spaces above it.
+
+        Examples:
+            >>> from torchrl_options import OptionsMLP
+            >>> OptionHierarchy(4, [OptionsMLP(2, 4, 3), OptionsMLP(2, 7, 2)]).option_index(2, 1)
+            8
+        """
+        self._check_level(level)
+        if isinstance(option, bool) or not isinstance(option, int):
+            raise TypeError(f"option must be an int, got {option!r} ({type(option).__name__}).")
         if not 0 <= option < self.num_options[level - 1]:
-            raise ValueError(f"level {level} has {self.num_options[level - 1]} options, got option {option}.")
+            raise ValueError(
+                f"level {level} has {self.num_options[level - 1]} options (0 .. {self.num_options[level - 1] - 1}), "
+                f"got option {option}."
+            )
         return self.action_space_sizes[level - 1] + option
 
     def executors(self, **kwargs) -> list:
@@ -197,6 +228,8 @@ def save_hierarchy(hierarchy: OptionHierarchy, path: str | os.PathLike, *, metad
         >>> torch.equal(h.options(2)(td.clone())["option_logits"], loaded.options(2)(td.clone())["option_logits"])
         True
     """
+    if not isinstance(hierarchy, OptionHierarchy):
+        raise TypeError(f"save_hierarchy: hierarchy must be an OptionHierarchy, got {type(hierarchy).__name__}.")
     payload = {
         "format": _FORMAT,
         "num_actions": hierarchy.num_actions,
@@ -206,9 +239,9 @@ def save_hierarchy(hierarchy: OptionHierarchy, path: str | os.PathLike, *, metad
             None if (m := hierarchy.meta_control(j)) is None else module_to_dict(m)
             for j in range(1, hierarchy.num_levels + 1)
         ],
-        "metadata": dict(metadata or {}),
+        "metadata": check_metadata(metadata),
     }
-    torch.save(payload, path)
+    write_payload(payload, path, "hierarchy")
 
 
 def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata: bool = False):
@@ -228,10 +261,13 @@ def load_hierarchy(path: str | os.PathLike, *, map_location=None, with_metadata:
         >>> hierarchy.num_options, metadata
         ([3], {'seed': 0})
     """
-    source = os.fspath(path)
     payload = load_file(path, what="hierarchy", map_location=map_location)
+    source = os.fspath(path)
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise ValueError(f"{source}: not a hierarchy file written by torchrl_options save_hierarchy.")
+        raise ValueError(
+            f"{source}: not a hierarchy file written by torchrl_options save_hierarchy (expected format {_FORMAT!r}, "
+            f"got {describe_payload(payload)})."
+        )
     missing = [k for k in ("num_actions", "num_options", "levels", "meta_controls") if k not in payload]
     if missing:
         raise ValueError(f"{source}: the hierarchy file lacks {missing}.")

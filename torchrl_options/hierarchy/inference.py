@@ -32,7 +32,8 @@ import math
 import torch
 from torch import Tensor
 
-from torchrl_options.inference._semiring import LOG, SAFE_LOG
+from torchrl_options.checks import check_int
+from torchrl_options.inference.semiring import LOG, SAFE_LOG
 
 __all__ = [
     "BACKENDS",
@@ -86,6 +87,7 @@ def stack_shapes(num_levels: int) -> list[tuple[int, ...]]:
         >>> stack_shapes(3)
         [(2,), (2, 0), (2, 1), (2, 1, 0)]
     """
+    check_int(num_levels, "num_levels", minimum=1)
     top = num_levels - 1
     shapes = [(top,)]
     frontier = [(top,)]

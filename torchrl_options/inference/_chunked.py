@@ -12,7 +12,7 @@ all chunks (and all batch rows) at once:
 2. *Scan* (``C`` sequential steps, float64): the forward messages at the chunk starts, ``alpha_{(c+1)L} ~ P_c alpha_{cL}``,
    and the backward messages, ``beta_{cL} ~ P_c^T beta_{(c+1)L}``, in log space.
 3. *Recover* (``L`` sequential steps, parallel over chunks): every per-step message, by the reference's own
-   normalised log-space step (:func:`~torchrl_options.inference._semiring.forward_step` and ``backward_step`` in
+   normalised log-space step (:func:`~torchrl_options.inference.semiring.forward_step` and ``backward_step`` in
    the log semiring, in the inputs' dtype) started from the chunk boundaries.
 4. *Check*: each chunk's recovered message one step past its end must agree with the next boundary of the scan
    (in log space, to a tolerance set by the dtype, for entries above e^-600 of the message). Rows that fail (a transfer matrix underflowed
@@ -35,7 +35,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchrl_options.inference._semiring import backward_step, forward_step, LogSemiring
+from torchrl_options.inference.semiring import backward_step, forward_step, LogSemiring
 
 __all__ = ["chunked_forward_backward", "choose_chunk_length"]
 

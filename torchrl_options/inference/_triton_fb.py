@@ -10,7 +10,7 @@ The arithmetic is the reference's (same recursion, same normalisation, log space
 entries are exact zeros and long trajectories stay finite. Triton's interpreter (``TRITON_INTERPRET=1``) runs the
 same kernel on the CPU, which is how it is tested without a GPU.
 
-The kernel keeps its own copy of the step of :mod:`._semiring` (the one scan that the reference forward-backward,
+The kernel keeps its own copy of the step of :mod:`.semiring` (the one scan that the reference forward-backward,
 Viterbi and the chunked backend share): it is machine code for the log semiring only, as is the Numba kernel.
 """
 from __future__ import annotations

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from torchrl_options.inference._semiring import backward_step, end_factor, forward_messages, LOG, total
+from torchrl_options.inference.semiring import backward_step, end_factor, forward_messages, LOG, total
 
 __all__ = [
     "BACKENDS",
@@ -99,7 +99,11 @@ def check_forward_backward_inputs(
             raise ValueError(f"mask must be a bool tensor of shape [B, T] = {(B, T)}, got {_describe(mask)}.")
         if mask.shape != (B, T):
             raise ValueError(f"mask must have shape [B, T] = {(B, T)}, got {tuple(mask.shape)}.")
-        mask = mask.to(log_pi.device)
+        if mask.device != log_pi.device:
+            try:
+                mask = mask.to(log_pi.device)
+            except (NotImplementedError, RuntimeError):
+                raise ValueError(f"mask is on device {mask.device} but log_pi is on {log_pi.device}.") from None
         gaps = mask[:, 1:] & ~mask[:, :-1]
         if gaps.any():
             rows = gaps.any(1).nonzero().flatten().tolist()
@@ -160,7 +164,7 @@ def _forward_backward_reference(
     row_ids: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The reference: normalised log-space forward-backward, one step at a time, O(K) per step: the log semiring's
-    :func:`~torchrl_options.inference._semiring.forward_step` and ``backward_step``, shared with :func:`viterbi`.
+    :func:`~torchrl_options.inference.semiring.forward_step` and ``backward_step``, shared with :func:`viterbi`.
 
     Works on inputs whose padding was replaced by zeros. Returns ``(log_likelihood, u, v, w)``. ``row_ids`` (the
     rows' indices in the caller's batch) only serve the zero-likelihood error message.

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchrl_options.inference._semiring import chunked_forward_messages, end_factor, forward_messages, MAX, total
+from torchrl_options.checks import check_same_device, check_tensor
+from torchrl_options.inference.semiring import chunked_forward_messages, end_factor, forward_messages, MAX, total
 from torchrl_options.inference.forward_backward import check_forward_backward_inputs
 
 __all__ = ["VITERBI_BACKENDS", "ViterbiOutput", "viterbi", "most_likely_options"]
@@ -45,7 +46,7 @@ def viterbi(
 
     Same inputs and model as :func:`~torchrl_options.forward_backward` (Fox et al., 2017, appendix A), with the
     sums replaced by maxima; O(K) per step: the max-plus semiring's scan
-    (:func:`~torchrl_options.inference._semiring.forward_messages`, the reference forward-backward's own step), then
+    (:func:`~torchrl_options.inference.semiring.forward_messages`, the reference forward-backward's own step), then
     backpointers. Ties prefer continuing the running option (fewer boundaries), then the lowest option index.
 
     Args:
@@ -56,7 +57,7 @@ def viterbi(
     Keyword Args:
         backend (str): ``"reference"`` (default): ``T`` sequential steps of O(K) work. ``"chunked"``: the same
             max-plus scan by chunks of about ``sqrt(T)`` transitions
-            (:func:`~torchrl_options.inference._semiring.chunked_forward_messages`: chunk transfer matrices
+            (:func:`~torchrl_options.inference.semiring.chunked_forward_messages`: chunk transfer matrices
             composed in parallel, a scan across chunks, every message recovered in parallel), about ``3 sqrt(T)``
             sequential steps of O(K^2) work: faster on long trajectories with few options. The same sequence and
             log-probability up to float rounding (an exact tie between two sequences may then break the other
@@ -192,11 +193,28 @@ def most_likely_options(u: Tensor, mask: Tensor | None = None) -> Tensor:
         u (Tensor): ``[B, T, K]`` posterior marginals (from :func:`forward_backward`).
         mask (Tensor, optional): ``[B, T]`` bool.
 
+    Raises:
+        ValueError: ``u`` is not a ``[B, T, K]`` floating point tensor with ``K >= 1`` or holds NaN at a valid step;
+            ``mask`` is not a ``[B, T]`` bool tensor on ``u``'s device (``TypeError`` for a non-tensor).
+
     Examples:
         >>> import torch
         >>> most_likely_options(torch.tensor([[[0.9, 0.1], [0.2, 0.8]]]))
         tensor([[0, 1]])
     """
+    check_tensor(u, "u", ndim=3, dtype="floating", owner="most_likely_options")
+    B, T, K = u.shape
+    if K == 0:
+        raise ValueError("most_likely_options: u must hold K >= 1 options in its last dimension, got shape [B, T, 0].")
+    if mask is not None:
+        check_tensor(mask, "mask", shape=(B, T), dtype="bool", owner="most_likely_options")
+        check_same_device({"u": u, "mask": mask}, "most_likely_options")
+    bad = torch.isnan(u).any(-1)
+    if mask is not None:
+        bad = bad & mask
+    if bad.any():
+        b, t = bad.nonzero()[0].tolist()
+        raise ValueError(f"most_likely_options: u holds NaN at (b, t) = ({b}, {t}); the marginals must be numbers.")
     out = u.argmax(-1)
     if mask is not None:
         out = torch.where(mask, out, -1)

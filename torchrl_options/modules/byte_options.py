@@ -21,9 +21,11 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
 
+from torchrl_options.checks import check_int, check_positive_number
 from torchrl_options.modules._features import (
     activation_class,
     as_key_list,
+    check_module_keys,
     hidden_sizes,
     key_to_config,
     ObservationModule,
@@ -171,10 +173,8 @@ class OneHotByteOptions(ObservationModule):
     ) -> None:
         super().__init__()
         for name, value in (("num_bytes", num_bytes), ("num_actions", num_actions), ("num_options", num_options)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
-        if isinstance(value_scale, bool) or not isinstance(value_scale, (int, float)) or not 0 < value_scale < math.inf:
-            raise ValueError(f"value_scale must be a number > 0 (1.0 for raw bytes, 1/255 for bytes/255), got {value_scale!r}.")
+            check_int(value, name, minimum=1)
+        check_positive_number(value_scale, "value_scale")  # 1.0 for raw bytes, 1/255 for bytes / 255
         cells = hidden_sizes(num_cells)
         if out_keys is None:
             out_keys = ["option_logits", "termination_logits"]
@@ -183,6 +183,7 @@ class OneHotByteOptions(ObservationModule):
             raise ValueError(f"out_keys must name two entries (option logits, termination logits), got {out_keys}.")
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
+        check_module_keys("OneHotByteOptions", self.in_keys, self.out_keys)
         self.num_bytes, self.num_actions, self.num_options = num_bytes, num_actions, num_options
         self.value_scale = float(value_scale)
         self.config = dict(

@@ -16,6 +16,8 @@ from torchrl.modules import MLP
 from torchrl_options.modules._features import (
     activation_class,
     as_key_list,
+    check_module_keys,
+    check_sizes,
     hidden_sizes,
     key_to_config,
     ObservationModule,
@@ -57,10 +59,10 @@ class MetaControlMLP(ObservationModule):
         out_key: NestedKey = "meta_logits",
     ) -> None:
         super().__init__()
-        if num_options < 1 or in_features < 1:
-            raise ValueError(f"in_features and num_options must be positive, got {in_features}, {num_options}.")
+        check_sizes(in_features=in_features, num_options=num_options)
         self.in_keys = as_key_list(in_keys, "in_keys")
-        self.out_keys = [out_key]
+        self.out_keys = as_key_list([out_key], "out_key")
+        check_module_keys("MetaControlMLP", self.in_keys, self.out_keys)
         self.num_options = num_options
         cells = hidden_sizes(num_cells)
         self.config = dict(
@@ -108,10 +110,10 @@ class UniformMetaControl(ObservationModule):
         out_key: NestedKey = "meta_logits",
     ) -> None:
         super().__init__()
-        if num_options < 1:
-            raise ValueError(f"num_options must be positive, got {num_options}.")
+        check_sizes(num_options=num_options)
         self.in_keys = as_key_list(in_keys, "in_keys")[:1]
-        self.out_keys = [out_key]
+        self.out_keys = as_key_list([out_key], "out_key")
+        check_module_keys("UniformMetaControl", self.in_keys, self.out_keys)
         self.num_options = num_options
         self.config = dict(
             num_options=num_options,

@@ -10,6 +10,7 @@ this package that uses options reads only these entries, so hand-written options
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -18,9 +19,12 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP, MultiAgentMLP
 
+from torchrl_options.checks import check_bool, check_number
 from torchrl_options.modules._features import (
     activation_class,
     as_key_list,
+    check_module_keys,
+    check_sizes,
     hidden_sizes,
     key_to_config,
     ObservationModule,
@@ -134,11 +138,7 @@ class OptionsMLP(ObservationModule):
         super().__init__()
         if out_keys is None:
             out_keys = ["option_logits", "termination_logits"]
-        if num_options < 1 or num_actions < 1 or in_features < 1:
-            raise ValueError(
-                f"in_features, num_actions and num_options must be positive, got {in_features}, {num_actions}, "
-                f"{num_options}."
-            )
+        check_sizes(in_features=in_features, num_actions=num_actions, num_options=num_options)
         if architecture not in ("separate", "shared"):
             raise ValueError(f"architecture must be 'separate' or 'shared', got {architecture!r}.")
         out_keys = as_key_list(out_keys, "out_keys")
@@ -146,6 +146,7 @@ class OptionsMLP(ObservationModule):
             raise ValueError(f"out_keys must name two entries (option logits, termination logits), got {out_keys}.")
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
+        check_module_keys("OptionsMLP", self.in_keys, self.out_keys)
         cells = hidden_sizes(num_cells)
         if termination_cells is not None and architecture != "separate":
             raise ValueError(
@@ -246,11 +247,10 @@ class GaussianOptionsMLP(ObservationModule):
         super().__init__()
         if out_keys is None:
             out_keys = ["option_loc", "option_scale", "termination_logits"]
-        if num_options < 1 or action_dim < 1 or in_features < 1:
-            raise ValueError(
-                f"in_features, action_dim and num_options must be positive, got {in_features}, {action_dim}, "
-                f"{num_options}."
-            )
+        check_sizes(in_features=in_features, action_dim=action_dim, num_options=num_options)
+        check_number(init_scale, "init_scale", lo=0.0, hi=math.inf, lo_open=True, hi_open=True)
+        check_number(min_scale, "min_scale", lo=0.0, hi=math.inf, lo_open=True, hi_open=True)
+        check_bool(state_dependent_scale, "state_dependent_scale")
         if init_scale <= min_scale or min_scale <= 0:
             raise ValueError(f"need 0 < min_scale < init_scale, got min_scale={min_scale}, init_scale={init_scale}.")
         out_keys = as_key_list(out_keys, "out_keys")
@@ -258,6 +258,7 @@ class GaussianOptionsMLP(ObservationModule):
             raise ValueError(f"out_keys must name three entries (loc, scale, termination logits), got {out_keys}.")
         self.in_keys = as_key_list(in_keys, "in_keys")
         self.out_keys = out_keys
+        check_module_keys("GaussianOptionsMLP", self.in_keys, self.out_keys)
         cells = hidden_sizes(num_cells)
         term_cells = cells if termination_cells is None else hidden_sizes(termination_cells, "termination_cells")
         self.num_options, self.action_dim = num_options, action_dim

@@ -21,6 +21,8 @@ from tensordict.nn import dispatch, TensorDictModuleBase, TensorDictParams
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import AUTO_LOSS_MASK_KEYS, LossModule
 
+from torchrl_options.checks import check_bool
+
 __all__ = [
     "BatchChecks",
     "check_network_output",
@@ -467,8 +469,7 @@ class DDOLossBase(LossModule):
         if not isinstance(backend, str) or backend not in self.BACKENDS:
             raise ValueError(f"backend must be one of {self.BACKENDS}, got {backend!r}.")
         for arg, value in (("terminal_at_end", terminal_at_end), ("diagnostics", diagnostics)):
-            if not isinstance(value, bool):
-                raise TypeError(f"{arg} must be a bool, got {value!r}.")
+            check_bool(value, arg)
         k_opt = getattr(options, "num_options", None)
         k_meta = getattr(meta_control, "num_options", None)
         if k_opt is not None and k_meta is not None and k_opt != k_meta:
@@ -496,8 +497,7 @@ class DDOLossBase(LossModule):
 
     @diagnostics.setter
     def diagnostics(self, value: bool) -> None:
-        if not isinstance(value, bool):
-            raise TypeError(f"diagnostics must be a bool, got {value!r}.")
+        check_bool(value, "diagnostics")
         self._diagnostics = value
         self.out_keys = list(type(self)._out_keys) if value else ["loss_ddo", "log_likelihood_per_step"]
 

@@ -14,6 +14,8 @@ from typing import Any
 from tensordict import TensorDictBase
 from torch import nn
 
+from torchrl_options.checks import check_nested_key
+
 __all__ = ["StepLevelDataError", "guard_decision_level", "is_step_level_option_data"]
 
 _GUARDED = "_torchrl_options_decision_guard"
@@ -37,7 +39,10 @@ def is_step_level_option_data(data: TensorDictBase, steps_key: str = "steps_to_n
         >>> is_step_level_option_data(step.set("steps_to_next_obs", torch.ones(3, dtype=torch.long)))
         False
     """
-    if not isinstance(data, TensorDictBase) or steps_key in data.keys(True):
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"is_step_level_option_data expects a TensorDict, got {type(data).__name__}.")
+    steps_key = check_nested_key(steps_key, "steps_key")
+    if steps_key in data.keys(True):
         return False
     for key in data.keys(True, True):
         name = key if isinstance(key, str) else key[-1]
@@ -98,7 +103,7 @@ def _guard(module: nn.Module) -> None:
 
     def hook(mod: nn.Module, args: tuple, kwargs: dict) -> None:
         data = args[0] if args else kwargs.get("tensordict")
-        if is_step_level_option_data(data):
+        if isinstance(data, TensorDictBase) and is_step_level_option_data(data):
             raise StepLevelDataError(
                 f"{name} received step-level data of an option executor (it has an 'option_decision' entry and no "
                 "'steps_to_next_obs'): on steps inside an option the policy's action was not taken, and GAE would "

@@ -23,6 +23,8 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from torchrl_options.checks import check_int
+
 __all__ = [
     "REACH_GRASP_SKILLS",
     "dead_ends",
@@ -397,6 +399,8 @@ def gridworld_subgoal_demonstrations(
     from torchrl_options.envs.maps import load_map
     from torchrl_options.envs.supervisor import value_iteration
 
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    check_int(length, "length", minimum=1)
     grid = load_map(_resolve_grid(grid))
     subgoals = default_subgoals(grid) if subgoals is None else subgoals
     if isinstance(subgoals, str):

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -57,6 +58,7 @@ from torchrl_options.checkpoints import (
     tensordict_from_plain,
     tensordict_to_plain,
 )
+from torchrl_options.checks import with_article
 
 __all__ = ["TrajectoryFileError", "load_trajectories", "save_trajectories", "trajectories_from_arrays"]
 
@@ -90,16 +92,50 @@ def _detect_format(path: Path) -> str:
     )
 
 
+_EXPECTED = "the arrays 'observations' and 'actions' (see torchrl_options.segmentation.io)"
+
+
+def _unreadable(source: str, kind: str, err: BaseException) -> TrajectoryFileError:
+    detail = str(err).splitlines()[0] if str(err) else ""
+    return TrajectoryFileError(
+        f"{source}: not a readable {kind} file (truncated, corrupt or another format: {type(err).__name__}"
+        f"{': ' + detail if detail else ''}); expected {with_article(kind)} file holding {_EXPECTED}."
+    )
+
+
+def _check_not_empty(path: Path, kind: str) -> None:
+    if path.stat().st_size == 0:
+        raise TrajectoryFileError(f"{path}: this {kind} file is empty; expected {with_article(kind)} file holding {_EXPECTED}.")
+
+
 class _NpzReader(Mapping):
-    """Read-only access to an ``.npz`` archive that turns numpy's pickle error into one naming the key."""
+    """Read-only access to an ``.npz`` archive that turns numpy's errors (pickled data, a truncated or corrupt
+    archive) into ones naming the file and the key."""
 
     def __init__(self, path: Path):
-        self._file = np.load(path, allow_pickle=False)
+        import zipfile
+
         self._source = str(path)
+        _check_not_empty(path, "NumPy .npz")
+        try:
+            self._file = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:
+            # numpy reads a file that is not a zip archive as a pickle, which allow_pickle=False refuses
+            raise _unreadable(self._source, "NumPy .npz", err) from None
+        if not isinstance(self._file, np.lib.npyio.NpzFile):
+            raise TrajectoryFileError(
+                f"{self._source}: holds one array (a .npy file), not a NumPy .npz archive of named arrays; expected "
+                f"{_EXPECTED}."
+            )
 
     def __getitem__(self, key: str) -> np.ndarray:
+        import zipfile
+        import zlib
+
         try:
             return self._file[key]
+        except KeyError:
+            raise
         except ValueError as err:
             if "allow_pickle" in str(err) or "Object arrays" in str(err):
                 raise _fail(
@@ -107,7 +143,9 @@ class _NpzReader(Mapping):
                     "is a ragged (object) array. Store padded arrays with a 'lengths' array, or one array per "
                     f"trajectory ('{key}_0', '{key}_1', ...).",
                 ) from None
-            raise
+            raise _fail(self._source, key, f"cannot be read (truncated or corrupt archive: {err}).") from None
+        except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            raise _fail(self._source, key, f"cannot be read (truncated or corrupt archive: {type(err).__name__}: {err}).") from None
 
     def __iter__(self):
         return iter(self._file.files)
@@ -122,7 +160,12 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
     import h5py
 
     out = {}
-    with h5py.File(path, "r") as f:
+    _check_not_empty(path, "HDF5")
+    try:
+        f = h5py.File(path, "r")
+    except (OSError, ValueError) as err:
+        raise _unreadable(str(path), "HDF5", err) from None
+    with f:
         for key, item in f.items():
             if not isinstance(item, h5py.Dataset):
                 continue
@@ -132,7 +175,10 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
                     "is a ragged (variable-length) dataset. Store padded arrays with a 'lengths' array, or one "
                     f"dataset per trajectory ('{key}_0', '{key}_1', ...).",
                 )
-            out[key] = item[()]
+            try:
+                out[key] = item[()]
+            except (OSError, ValueError, TypeError) as err:
+                raise _fail(str(path), key, f"cannot be read (truncated or corrupt file: {err}).") from None
     return out
 
 
@@ -194,6 +240,8 @@ def trajectories_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "ar
         ...
         torchrl_options.segmentation.io.TrajectoryFileError: arrays: 'observations' is missing (found keys: ['actions']).
     """
+    if not isinstance(arrays, Mapping):
+        raise TypeError(f"{source}: arrays must be a mapping from the documented keys to arrays, got {type(arrays).__name__}.")
     if "observations" not in arrays and "observations_0" in arrays:
         arrays = _pad_ragged(arrays, source)
     for key in ("observations", "actions"):
@@ -213,6 +261,9 @@ def trajectories_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "ar
         raise _fail(source, "actions", f"is empty (shape {actions.shape}).")
     if obs.shape[0] != N:
         raise _fail(source, "observations", f"has {obs.shape[0]} trajectories but 'actions' has {N}.")
+    for key, x in (("observations", obs), ("actions", actions), ("next_observations", arr.get("next_observations"))):
+        if x is not None and x.dtype.kind not in "biuf":
+            raise _fail(source, key, f"must hold numbers (or booleans), got dtype {x.dtype}.")
     if not np.issubdtype(obs.dtype, np.number) or obs.dtype == bool:
         obs = obs.astype(np.float32)
     discrete = np.issubdtype(actions.dtype, np.integer) or actions.dtype == bool
@@ -364,9 +415,13 @@ def load_trajectories(path: str | Path, *, format: str = "auto") -> TensorDict:
         ...
         torchrl_options.segmentation.io.TrajectoryFileError: ...demos.npz: 'observations' holds NaN or inf (value) at trajectory 0, step 0.
     """
+    if format not in ("auto", "npz", "hdf5", "tensordict"):
+        raise ValueError(f"format must be 'auto', 'npz', 'hdf5' or 'tensordict', got {format!r}.")
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"load_trajectories: path must be a str or a path, got {type(path).__name__}.")
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"no such file or directory: {path}")
+        raise FileNotFoundError(f"{path}: no such trajectories file or directory.")
     fmt = _detect_format(path) if format == "auto" else format
     source = str(path)
     if fmt == "npz":
@@ -384,6 +439,7 @@ def _read_tensordict(path: Path, source: str) -> TensorDictBase:
     if path.is_dir():
         if not (path / "meta.json").exists():
             raise TrajectoryFileError(f"{source}: not a TensorDict directory (no meta.json).")
+        _check_memmap_files(path, source)
         try:
             return TensorDict.load_memmap(path, allow_pickle=False).to_tensordict()
         except RuntimeError as err:
@@ -395,8 +451,10 @@ def _read_tensordict(path: Path, source: str) -> TensorDictBase:
             raise TrajectoryFileError(f"{source}: not a readable TensorDict directory ({err}).") from None
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise TrajectoryFileError(f"{source}: not a readable TensorDict directory ({type(err).__name__}: {err}).") from None
+    if path.is_dir() is False and path.suffix.lower() not in (".pt", ".pth") and path.stat().st_size == 0:
+        raise TrajectoryFileError(f"{source}: this trajectories file is empty.")
     try:
-        data = load_file(path, what="trajectories file")
+        data = load_file(path, what="trajectories")
     except CheckpointFileError as err:
         raise TrajectoryFileError(str(err)) from None
     if isinstance(data, Mapping) and data.get("format") == _TD_FORMAT:
@@ -406,6 +464,45 @@ def _read_tensordict(path: Path, source: str) -> TensorDictBase:
     raise TrajectoryFileError(
         f"{source}: expected trajectories (a dict of tensors, as save_trajectories writes), got {type(data).__name__}."
     )
+
+
+def _check_memmap_files(path: Path, source: str) -> None:
+    """Checks, before loading, that every tensor file of a TensorDict directory holds the bytes its ``meta.json``
+    announces: TensorDict maps a short (truncated) file and fills the rest with zeros, silently, extending the file
+    on disk."""
+    import json
+
+    for meta_path in sorted(path.rglob("meta.json")):
+        folder = meta_path.parent
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as err:
+            raise TrajectoryFileError(
+                f"{source}: not a readable TensorDict directory: {meta_path} is not valid JSON ({err})."
+            ) from None
+        if not isinstance(meta, dict):
+            raise TrajectoryFileError(f"{source}: not a readable TensorDict directory: {meta_path} holds no mapping.")
+        for name, entry in meta.items():
+            if not isinstance(entry, dict) or "shape" not in entry or "dtype" not in entry or entry.get("is_nested"):
+                continue
+            dtype = getattr(torch, str(entry["dtype"]).replace("torch.", ""), None)
+            if not isinstance(dtype, torch.dtype) or not isinstance(entry["shape"], list):
+                raise TrajectoryFileError(
+                    f"{source}: not a readable TensorDict directory: {meta_path} describes {name!r} with dtype "
+                    f"{entry['dtype']!r} and shape {entry['shape']!r}."
+                )
+            expected = int(np.prod(entry["shape"], dtype=np.int64)) * torch.empty((), dtype=dtype).element_size()
+            file = folder / f"{name}.memmap"
+            if not file.exists():
+                if expected == 0:
+                    continue
+                raise TrajectoryFileError(f"{source}: the TensorDict directory lacks {file} (entry {name!r}).")
+            size = file.stat().st_size
+            if size != expected:
+                raise TrajectoryFileError(
+                    f"{source}: {file} holds {size} bytes, but entry {name!r} ({entry['dtype']} of shape "
+                    f"{entry['shape']}) needs {expected}: the directory is truncated or corrupt."
+                )
 
 
 def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: str | None = "true_switch") -> Path:
@@ -431,7 +528,13 @@ def save_trajectories(data: TensorDictBase, path: str | Path, *, reference_key: 
     missing = [k for k in ("observation", "action", ("next", "observation")) if k not in data.keys(include_nested=True)]
     if missing:
         raise ValueError(f"save_trajectories: data lacks {missing} (it needs observation, action, ('next', 'observation')).")
+    if reference_key is not None and not isinstance(reference_key, str):
+        raise TypeError(f"save_trajectories: reference_key must be a str or None, got {reference_key!r}.")
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"save_trajectories: path must be a str or a path, got {type(path).__name__}.")
     path = Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"save_trajectories: cannot write {path}: the folder {path.parent} does not exist.")
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".h5", ".hdf5", ".pt", ".pth"):
         data.save(path)

@@ -86,6 +86,10 @@ def as_boundary_lists(
     """
     if isinstance(boundaries, torch.Tensor):
         boundaries = boundaries.detach().cpu().numpy()
+    if isinstance(boundaries, (str, bytes)) or not isinstance(boundaries, (np.ndarray, Sequence)):
+        raise TypeError(
+            f"{name} must be [B, T] booleans (a tensor or array) or a list of index lists, got {type(boundaries).__name__}."
+        )
     if isinstance(boundaries, np.ndarray) and boundaries.ndim == 2 and boundaries.dtype != object:
         if boundaries.dtype != bool and not np.isin(boundaries, (0, 1)).all():
             raise ValueError(f"{name}: a [B, T] array of boundaries must be boolean (or 0/1).")
@@ -126,6 +130,8 @@ def _pair(predicted, reference, lengths, include_start):
 
 
 def _check_window(window: int) -> int:
+    if isinstance(window, bool) or not isinstance(window, (int, float, np.integer, np.floating)) or not np.isfinite(window):
+        raise ValueError(f"window must be a non-negative integer number of steps, got {window!r}.")
     if int(window) != window or window < 0:
         raise ValueError(f"window must be a non-negative integer number of steps, got {window!r}.")
     return int(window)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchrl_options.checks import check_int
 from torchrl_options.segmentation.metrics import as_boundary_lists
 
 __all__ = ["plot_segmentation"]
@@ -61,6 +62,8 @@ def plot_segmentation(
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
+    check_int(max_trajectories, "max_trajectories", minimum=1, allow_none=True)
+    check_int(num_options, "num_options", minimum=1, allow_none=True)
     opts = np.asarray(options.detach().cpu() if isinstance(options, torch.Tensor) else options).astype(np.int64)
     if opts.ndim != 2:
         raise ValueError(f"options must be [B, T], got shape {opts.shape}.")

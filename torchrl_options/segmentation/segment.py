@@ -15,8 +15,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from torchrl_options.checks import check_int
-from torchrl_options.discovery._validation import check_options_module, check_step_data
+from torchrl_options.checks import check_int, check_number, check_same_device, check_tensor
+from torchrl_options.discovery.validation import check_options_module, check_step_data
 from torchrl_options.discovery import as_trajectory_batch, DiscoveryResult
 from torchrl_options.inference import forward_backward, most_likely_options, viterbi
 from torchrl_options.objectives import DDOLoss
@@ -34,6 +34,10 @@ def boundaries_from_options(options: Tensor, mask: Tensor | None = None) -> Tens
         >>> boundaries_from_options(torch.tensor([[0, 0, 1, 1, 0, -1]])).int()
         tensor([[0, 0, 1, 0, 1, 0]], dtype=torch.int32)
     """
+    check_tensor(options, "options", ndim=2, dtype="integer", owner="boundaries_from_options")
+    if mask is not None:
+        check_tensor(mask, "mask", shape=tuple(options.shape), dtype="bool", owner="boundaries_from_options")
+        check_same_device({"options": options, "mask": mask}, "boundaries_from_options")
     change = torch.zeros_like(options, dtype=torch.bool)
     change[:, 1:] = options[:, 1:] != options[:, :-1]
     valid = options >= 0 if mask is None else mask.bool()
@@ -160,8 +164,7 @@ def segment(
         raise ValueError(f"method must be 'viterbi' or 'posterior', got {method!r}.")
     if boundary not in ("change", "switch"):
         raise ValueError(f"boundary must be 'change' or 'switch', got {boundary!r}.")
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 <= threshold <= 1.0:
-        raise ValueError(f"threshold must be a probability in [0, 1], got {threshold!r}.")
+    check_number(threshold, "threshold", lo=0.0, hi=1.0)
     check_int(batch_size, "batch_size", minimum=1, allow_none=True)
     if isinstance(options, DiscoveryResult):
         meta_control = options.meta_control if meta_control is None else meta_control

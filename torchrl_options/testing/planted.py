@@ -6,6 +6,8 @@ import itertools
 import torch
 from tensordict import TensorDict
 
+from torchrl_options.checks import check_int, check_number, check_same_device, check_tensor
+
 __all__ = ["planted_corridor_demonstrations", "label_accuracy"]
 
 
@@ -47,6 +49,11 @@ def planted_corridor_demonstrations(
         >>> data.batch_size, data["true_option"].shape
         (torch.Size([4, 20]), torch.Size([4, 20]))
     """
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    check_int(length, "length", minimum=1)
+    check_int(size, "size", minimum=2)
+    check_number(action_noise, "action_noise", lo=0.0, hi=1.0)
+    check_number(spontaneous_termination, "spontaneous_termination", lo=0.0, hi=1.0)
     g = torch.Generator().manual_seed(seed)
     B, T = num_trajectories, length
     pos = torch.randint(size, (B,), generator=g)
@@ -85,6 +92,23 @@ def planted_corridor_demonstrations(
     )
 
 
+def check_labels(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None, owner: str) -> torch.Tensor:
+    """The mask (all steps when ``None``) after checking that labels and mask are integer / bool tensors of one
+    shape with a valid step and no negative label on it."""
+    check_tensor(truth, "truth", dtype="integer", owner=owner)
+    check_tensor(predicted, "predicted", shape=tuple(truth.shape), dtype="integer", owner=owner)
+    if mask is None:
+        mask = torch.ones_like(truth, dtype=torch.bool)
+    check_tensor(mask, "mask", shape=tuple(truth.shape), dtype="bool", owner=owner)
+    check_same_device({"predicted": predicted, "truth": truth, "mask": mask}, owner)
+    if not bool(mask.any()):
+        raise ValueError(f"{owner}: no valid step to score (the mask is all False).")
+    for name, x in (("predicted", predicted), ("truth", truth)):
+        if bool((x[mask] < 0).any()):
+            raise ValueError(f"{owner}: {name} holds a negative label on a valid step (labels are 0 .. K-1).")
+    return mask
+
+
 def label_accuracy(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None = None) -> float:
     """Fraction of steps where ``predicted`` equals ``truth``, maximised over relabellings of ``predicted``.
 
@@ -93,8 +117,7 @@ def label_accuracy(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Ten
         >>> label_accuracy(torch.tensor([1, 1, 0, 0]), torch.tensor([0, 0, 1, 1]))
         1.0
     """
-    if mask is None:
-        mask = torch.ones_like(truth, dtype=torch.bool)
+    mask = check_labels(predicted, truth, mask, "label_accuracy")
     p, t = predicted[mask], truth[mask]
     k = int(max(p.max(), t.max())) + 1
     best = 0.0

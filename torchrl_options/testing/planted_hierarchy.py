@@ -4,7 +4,9 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_options.checks import check_int, check_number
 
 __all__ = ["planted_two_level_demonstrations", "planted_two_level_log_probabilities", "LEFT", "RIGHT", "UP", "DOWN"]
 
@@ -58,6 +60,10 @@ def planted_two_level_demonstrations(
         >>> data["true_option_1"].shape, data["true_option_2"].max().item() <= 3
         (torch.Size([4, 30]), True)
     """
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    check_int(length, "length", minimum=1)
+    check_number(action_noise, "action_noise", lo=0.0, hi=1.0)
+    check_number(level2_termination, "level2_termination", lo=0.0, hi=1.0)
     if size < 2:
         raise ValueError(f"size must be at least 2, got {size}.")
     g = torch.Generator().manual_seed(seed)
@@ -150,6 +156,11 @@ def planted_two_level_log_probabilities(
         >>> label_accuracy(post.most_likely(2), data["true_option_2"]) > 0.9
         True
     """
+    if not isinstance(data, TensorDictBase) or data.ndim != 2:
+        raise TypeError(
+            "planted_two_level_log_probabilities: data must be the [B, T] TensorDict of planted_two_level_demonstrations, "
+            f"got {type(data).__name__}."
+        )
     last = size - 1
     pos = (data["observation"] * last).round().long()
     next_pos = (data["next", "observation"] * last).round().long()

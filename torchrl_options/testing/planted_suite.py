@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDict
 
+from torchrl_options.checks import check_int, check_tensor
 from torchrl_options.inference import forward_backward
+from torchrl_options.testing.planted import check_labels
 
 __all__ = [
     "PlantedProblem",
@@ -37,6 +39,13 @@ __all__ = [
 _MOVES = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]])  # left, right, up, down; y grows downwards
 
 
+def _check_lengths(lengths: tuple[int, int]) -> None:
+    if not isinstance(lengths, (tuple, list)) or len(lengths) != 2:
+        raise TypeError(f"lengths must be a pair (shortest, longest), got {lengths!r}.")
+    check_int(lengths[0], "lengths[0]", minimum=1)
+    check_int(lengths[1], "lengths[1]", minimum=lengths[0])
+
+
 def best_matching_accuracy(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None = None) -> float:
     """Fraction of steps where ``predicted`` equals ``truth``, maximised over one-to-one relabellings of ``predicted``.
 
@@ -48,11 +57,8 @@ def best_matching_accuracy(predicted: torch.Tensor, truth: torch.Tensor, mask: t
         >>> best_matching_accuracy(torch.tensor([2, 2, 0, 0, 1]), torch.tensor([0, 0, 1, 1, 1]))
         0.8
     """
-    if mask is None:
-        mask = torch.ones_like(truth, dtype=torch.bool)
+    mask = check_labels(predicted, truth, mask, "best_matching_accuracy")
     p, t = predicted[mask].long(), truth[mask].long()
-    if p.numel() == 0:
-        raise ValueError("best_matching_accuracy: no valid step to score (the mask is all False).")
     k = int(max(p.max(), t.max())) + 1
     if k > 16:
         raise ValueError(f"best_matching_accuracy supports at most 16 labels, got {k}.")
@@ -86,6 +92,11 @@ def posterior_accuracy(log_probs: dict, truth: torch.Tensor) -> tuple[float, flo
     Returns:
         ``(accuracy up to relabelling, log-likelihood per valid step)``.
     """
+    if not isinstance(log_probs, dict):
+        raise TypeError(f"posterior_accuracy: log_probs must be a dict of tensors, got {type(log_probs).__name__}.")
+    missing = [k for k in ("log_pi", "log_term", "log_cont", "log_eta", "mask") if k not in log_probs]
+    if missing:
+        raise ValueError(f"posterior_accuracy: log_probs lacks {missing} (expected DDOLoss.log_probabilities' entries).")
     mask = log_probs["mask"]
     with torch.no_grad():
         fb = forward_backward(
@@ -136,6 +147,15 @@ def planted_tabular_demonstrations(
         >>> data["collector", "mask"].sum(1).min().item() >= 5, data["true_option"].shape[0]
         (True, 4)
     """
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    _check_lengths(lengths)
+    check_tensor(policy, "policy", ndim=3, dtype="floating", owner="planted_tabular_demonstrations")
+    K, S, A = policy.shape
+    check_tensor(termination, "termination", shape=(K, S), dtype="floating", owner="planted_tabular_demonstrations")
+    check_tensor(next_state, "next_state", shape=(S, A), dtype="integer", owner="planted_tabular_demonstrations")
+    check_tensor(features, "features", ndim=2, owner="planted_tabular_demonstrations")
+    if features.shape[0] != S:
+        raise ValueError(f"planted_tabular_demonstrations: features must have one row per state (S={S}), got {list(features.shape)}.")
     K, S, A = policy.shape
     g = torch.Generator().manual_seed(seed)
     B, T = num_trajectories, lengths[1]
@@ -280,6 +300,8 @@ def planted_gaussian_demonstrations(
         mask, ``"true_option"`` and ``"true_switch"``: an option starts at the step, the same one redrawn included)
         and the truth's E-step inputs (float64).
     """
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    _check_lengths(lengths)
     g = torch.Generator().manual_seed(seed)
     goal = torch.tensor(goals)
     K, B, T = goal.shape[0], num_trajectories, lengths[1]

@@ -16,6 +16,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import EnvBase, Transform
 
+from torchrl_options.checks import check_distinct_keys
 from torchrl_options.transforms.option_executor import _level_key, _reset_key, _sibling_key
 
 __all__ = ["DecisionCounter"]
@@ -129,6 +130,12 @@ class DecisionCounter(Transform):
             truncated_key = _sibling_key(self.done_key, "truncated")
         self.truncated_key = unravel_key(truncated_key)
         self.reset_key = unravel_key(_reset_key(self.done_key))
+        # the count it writes must not land on an entry it reads (the flags, the decision record, the options)
+        named = {"count_key": self.count_key, "done_key": self.done_key, "truncated_key": self.truncated_key}
+        if self.decision_key is not None:
+            named["decision_key"] = self.decision_key
+        named.update({f"option_keys[{i}]": k for i, k in enumerate(self.option_keys)})
+        check_distinct_keys(named, "DecisionCounter")
         super().__init__(in_keys=[], out_keys=[self.count_key])
 
     # ------------------------------------------------------------------ specs

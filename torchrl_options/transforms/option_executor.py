@@ -19,6 +19,8 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
 
+from torchrl_options.checks import check_distinct_keys
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["OptionExecutor"]
@@ -210,6 +212,17 @@ class OptionExecutor(Transform):
         ]
         if len(set(records)) != len(records):
             raise ValueError(f"OptionExecutor: the record keys must differ, got {records}.")
+        # a record written over the action, the done flag, the lower level's option or the options' outputs
+        named = {"option_key": self.option_key, "option_actions_key": self.option_actions_key,
+                 "executed_action_key": self.executed_action_key, "executed_option_key": self.executed_option_key,
+                 "decision_key": self.decision_key, "action_key": self.action_key, "done_key": self.done_key,
+                 "option_logits_key": self.option_logits_key, "termination_logits_key": self.termination_logits_key}
+        if self.lower_option_key is not None:
+            named["lower_option_key"] = self.lower_option_key
+        check_distinct_keys(named, "OptionExecutor")  # fmt: skip
+        k = getattr(options, "num_options", None)
+        if isinstance(k, int) and not isinstance(k, bool) and k != num_options:
+            raise ValueError(f"OptionExecutor: num_options={num_options} but the options module has num_options={k}.")
         super().__init__(in_keys=[], out_keys=records)
         self.options = options
         self.num_options = num_options
@@ -303,8 +316,15 @@ class OptionExecutor(Transform):
         self.__dict__.pop("_generators", None)  # a clone attached to another env restarts from the seed
         parent = self.parent
         if parent is not None:  # a wrong action spec or missing inputs fail here, when the executor is appended
-            self._base_action_spec()
+            spec = self._base_action_spec()
             self._check_observation_keys(parent.observation_spec)
+            a = getattr(self.options, "num_actions", None)
+            if isinstance(a, int) and not isinstance(a, bool) and a != spec.n:
+                raise ValueError(
+                    f"OptionExecutor (level {self.level}): the options choose among num_actions={a} actions, but the "
+                    f"env below the executor has {spec.n} ({self.action_key!r}); options of level j choose among the "
+                    "actions of the env with the levels below j."
+                )
 
     def empty_cache(self) -> None:
         self._drop_caches()
@@ -469,10 +489,12 @@ class OptionExecutor(Transform):
     def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         try:
             return self._call_options_unchecked(tensordict)
-        except RuntimeError as err:  # e.g. options built for another observation size: say so at the door
+        except (RuntimeError, ValueError) as err:  # e.g. options built for another observation size: say so
+            if str(err).startswith("OptionExecutor"):  # the executor's own check
+                raise
             raise self._options_error(tensordict, err) from err
 
-    def _options_error(self, tensordict: TensorDictBase, err: RuntimeError) -> ValueError:
+    def _options_error(self, tensordict: TensorDictBase, err: Exception) -> ValueError:
         keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
         shapes = {
             key: tuple(tensordict.get(key).shape) for key in keys if isinstance(tensordict.get(key, None), torch.Tensor)
@@ -480,7 +502,7 @@ class OptionExecutor(Transform):
         return ValueError(
             f"OptionExecutor: the options module failed on the env's observations (shapes {shapes}, batch "
             f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
-            f"torch said: {err}"
+            f"the module said: {err}"
         )
 
     def _call_options_unchecked(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:

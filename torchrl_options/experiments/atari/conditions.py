@@ -10,6 +10,7 @@ import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from torchrl_options.checks import check_int
 from torchrl_options.experiments.sweep import Cell
 
 __all__ = ["CONDITIONS", "OPTION_FLAGS", "atari_cells"]
@@ -70,8 +71,16 @@ def atari_cells(games: Sequence[str], seeds: Sequence[int] | int, conditions: Se
         ValueError: a condition not in :data:`CONDITIONS` (``A``, ``A0``, or ``H1`` followed by any of ``w``, ``g``,
             ``i``, ``s`` in that order), or none.
     """
+    if isinstance(games, str) or not isinstance(games, Sequence) or not games:
+        raise ValueError(f"games must be a non-empty list of game names (e.g. ['Pong']), got {games!r}.")
+    if isinstance(conditions, str):
+        raise ValueError(f"conditions must be a non-empty list of {CONDITIONS}, got the string {conditions!r}.")
     bad = [c for c in conditions if c not in CONDITIONS]
     if bad or not conditions:
         raise ValueError(f"conditions must be a non-empty list of {CONDITIONS}, got {list(conditions)}.")
+    if isinstance(seeds, int) and not isinstance(seeds, bool):
+        check_int(seeds, "seeds", minimum=1)
+    elif isinstance(seeds, (str, bytes)) or not isinstance(seeds, Sequence) or not seeds:
+        raise ValueError(f"seeds must be a count >= 1 or a non-empty list of seeds, got {seeds!r}.")
     seeds = range(seeds) if isinstance(seeds, int) else seeds
     return [Cell(g, c, int(s)) for c in conditions for g in games for s in seeds]

@@ -36,6 +36,11 @@ class AtariConfig(DQNHyperParameters):
     quality gate: ``demo_random_episodes`` episodes of a uniformly random policy on the same game (0: none); when the
     greedy demonstrations' mean return is no better than theirs, the demonstrator is recorded as degenerate
     (``phase2.json`` and ``summary.md``) and a warning is logged; the protocol runs on regardless, as the paper's.
+    ``ddo_starts``: ``"one"`` (default; the paper's protocol and every kept run: one start from the options network
+    drawn from the seed, every iteration run) or ``"defaults"``: the options network comes from a factory, a fresh one
+    per start, and DDO gets :func:`~torchrl_options.discover_options`' default starts (``init="auto"``: 6 segment
+    starts of 40 iterations selected by likelihood, when ``ddo_iterations >= 240``), still without the stopping
+    rule.
 
     ``discount_per``: ``"step"`` (default, the SMDP target ``R + gamma^k max Q`` with rewards discounted inside an
     option) or ``"decision"`` (the authors' HDQN: an option's rewards summed undiscounted, one ``gamma`` per
@@ -87,6 +92,7 @@ class AtariConfig(DQNHyperParameters):
     ddo_batch_size: int | None = 20
     ddo_lr: float = 1e-3
     ddo_m_steps: int = 1
+    ddo_starts: str = "one"
     demo_random_episodes: int = 10
     # DQN: the fields of DQNHyperParameters, the paper's defaults where they differ from the agent's
     hidden_sizes: tuple[int, ...] = (64, 64, 64)
@@ -121,11 +127,11 @@ class AtariConfig(DQNHyperParameters):
     _NUMBERS: ClassVar[dict[str, tuple[float, float]]] = {"repeat_action_probability": (0.0, 1.0)}
 
     def __post_init__(self) -> None:
-        from torchrl_options.checks import check_int
-        from torchrl_options.discovery.discover import _check_m_steps
+        from torchrl_options.checks import check_choice, check_int
 
         super().__post_init__()  # the DQN settings
-        _check_m_steps(self.ddo_m_steps, name="ddo_m_steps")  # refused when the settings are read, not after phase 1
+        check_int(self.ddo_m_steps, "ddo_m_steps", minimum=1)  # refused when the settings are read, not after phase 1
+        check_choice(self.ddo_starts, "ddo_starts", ("one", "defaults"))
         for name, (minimum, allow_none) in self._INTS.items():
             check_int(getattr(self, name), name, minimum=minimum, allow_none=allow_none)
         for name, (lo, hi) in self._NUMBERS.items():
@@ -144,6 +150,10 @@ class AtariConfig(DQNHyperParameters):
                 isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in sizes
             ):
                 raise ValueError(f"{name} must be a non-empty list of ints >= 1, got {sizes!r}.")
+        from torchrl_options.checks import check_bool
+
+        for name in ("episodic_life", "clip_rewards", "vector_env", "fused_adam", "checkpoint_buffer", "option_frames"):
+            check_bool(getattr(self, name), name)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AtariConfig:
@@ -237,6 +247,9 @@ def store_atari_config(group: str = "atari", name: str = "schema") -> None:
         >>> ConfigStore.instance().load("atari/schema.yaml").node.phase1_episodes
         1000
     """
+    for arg, value in (("group", group), ("name", name)):
+        if not isinstance(value, str) or not value:
+            raise TypeError(f"store_atari_config: {arg} must be a non-empty str, got {value!r}.")
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(group=group, name=name, node=AtariConfig)

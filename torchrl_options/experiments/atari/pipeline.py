@@ -3,7 +3,6 @@ demonstrations and DDO, shared by the conditions of a seed), phase 3 (each condi
 resumed cell the uninterrupted one, bit for bit. See :mod:`torchrl_options.experiments.atari`."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -11,8 +10,10 @@ import time
 
 import torch
 from filelock import FileLock
+from tensordict.nn import TensorDictModuleBase
 
-from torchrl_options.checkpoints import save_file, scoped_seed
+from torchrl_options.checkpoints import save_file, save_json_file, scoped_seed
+from torchrl_options.checks import check_int
 from torchrl_options.experiments.atari.conditions import _option_flags, CONDITIONS
 from torchrl_options.experiments.atari.config import AtariConfig
 from torchrl_options.experiments.atari.figures import write_option_frames
@@ -93,8 +94,11 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     from torchrl_options.discovery import discover_options, load_options, save_options
 
     path = os.path.join(seed_dir, "options.pt")
+    report = os.path.join(seed_dir, "phase2.json")
     if os.path.exists(path):
         options, _, metadata = load_options(path, with_meta_control=True)
+        if not os.path.exists(report):  # written before the options since issue 53; rewritten for older runs
+            save_json_file(metadata, report)
         return options, metadata
     t0 = time.time()
     demos = _greedy_rollouts(agent, game, config, seed, config.num_demonstrations, config.demo_max_steps)
@@ -103,17 +107,10 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
     num_actions = _num_actions(game, config)
     demos = [t.select("observation", "action", ("next", "observation"), ("next", "done"), ("next", "terminated"),
                       ("next", "reward")) for t in demos]  # fmt: skip
-    options = None
-    if config.option_encoding == "one_hot":
-        from torchrl_options.modules import OneHotByteOptions
-
-        with scoped_seed(seed):  # the initial weights come from the seed alone
-            options = OneHotByteOptions(int(demos[0]["observation"].shape[-1]), num_actions, k,
-                                        num_cells=list(config.options_num_cells), value_scale=1 / 255)  # fmt: skip
     result = discover_options(
         demos,
         num_options=k,
-        options=options,
+        **_ddo_starts(config, int(demos[0]["observation"].shape[-1]), num_actions, k, seed),
         num_actions=num_actions,
         num_cells=list(config.options_num_cells),
         activation="tanh",
@@ -121,8 +118,7 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         batch_size=config.ddo_batch_size,
         lr=config.ddo_lr,
         m_steps=config.ddo_m_steps,
-        restarts=1,  # the paper's protocol: one start, every iteration run
-        tol=None,
+        tol=None,  # the paper's protocol: every iteration run
         device=config.device,
         seed=seed,
         progress=False,
@@ -149,11 +145,33 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         **_quality_gate(game, config, seed, demo_returns),
         "seconds": time.time() - t0,
     }
+    # the report first, then the options (both atomic): a run killed between them finds no options and redoes
+    # phase 2 (the same, from the seed), so the report always goes with the options it describes
+    save_json_file(metadata, report)
     save_options(options, path, metadata=metadata)
-    with open(os.path.join(seed_dir, "phase2.json"), "w") as f:
-        json.dump(metadata, f)
     logger.info("%s seed %d: DDO done, %s", game, seed, {k: v for k, v in metadata.items() if k != "demo_returns"})
     return options, metadata
+
+
+def _ddo_starts(config: AtariConfig, num_bytes: int, num_actions: int, k: int, seed: int) -> dict:
+    """Where phase 2's options come from, as ``discover_options`` keyword arguments. ``ddo_starts="one"``: the
+    paper's protocol and the kept runs, one start (the one-hot network drawn from the seed alone); ``"defaults"``:
+    a factory of fresh networks, so that DDO gets its default starts (segment starts, restarts)."""
+
+    def one_hot_options() -> TensorDictModuleBase:
+        from torchrl_options.modules import OneHotByteOptions
+
+        return OneHotByteOptions(num_bytes, num_actions, k, num_cells=list(config.options_num_cells), value_scale=1 / 255)
+
+    one_hot = config.option_encoding == "one_hot"
+    if config.ddo_starts == "defaults":
+        # "bytes": the default OptionsMLP of num_cells, fresh at each start as well
+        return {"options_factory": one_hot_options if one_hot else None}
+    options = None
+    if one_hot:
+        with scoped_seed(seed):  # the initial weights come from the seed alone
+            options = one_hot_options()
+    return {"options": options, "restarts": 1}
 
 
 def demonstrations_log_likelihood(options, demos, *, chunk: int = 8) -> float:
@@ -228,6 +246,10 @@ def option_usage(agent, num_actions: int, start: int = 0) -> dict[str, float]:
         >>> option_usage(SimpleNamespace(replay_buffer=buf), num_actions=3)
         {'option_decision_share': 0.5, 'option_step_share': 0.8, 'mean_option_steps': 4.0}
     """
+    check_int(num_actions, "num_actions", minimum=1)
+    check_int(start, "start", minimum=0)
+    if not hasattr(agent, "replay_buffer"):
+        raise TypeError(f"option_usage expects an agent with a replay buffer (an OptionsDQN), got {type(agent).__name__}.")
     n = len(agent.replay_buffer)
     if n <= start:
         return {"option_decision_share": float("nan"), "option_step_share": float("nan"), "mean_option_steps": float("nan")}
@@ -334,8 +356,7 @@ def _run_cell(cell: Cell, config: AtariConfig, out_dir: str) -> CellResult:
     info = {"seconds": time.time() - t0, "phase1_frames": p1_total, "demo_frames": metadata.get("demo_frames"), **phase3}
     if config.eval_every:
         info["evaluations"] = _cell_evaluations(cell.condition, phase1_agent, agent, n1, config.eval_every)
-    with open(os.path.join(seed_dir, f"{cell.condition}.json"), "w") as f:
-        json.dump(info, f)
+    save_json_file(info, os.path.join(seed_dir, f"{cell.condition}.json"))
     return CellResult(returns=[float(r) for r in returns], frames=[int(f) for f in frames], info=info)
 
 

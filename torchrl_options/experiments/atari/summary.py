@@ -3,7 +3,6 @@ intervals over seeds, paired differences), aggregates over games, greedy evaluat
 from __future__ import annotations
 
 import glob
-import json
 import logging
 import os
 from collections import defaultdict
@@ -12,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from torchrl_options.checkpoints import load_json_file
+from torchrl_options.checks import check_int, check_number
 from torchrl_options.experiments.atari.conditions import _describe, _option_flags, CONDITIONS
 from torchrl_options.experiments.intervals import interval_verdict, mean_interval, paired_difference_interval
 from torchrl_options.experiments.results import ResultsLog
@@ -74,8 +75,8 @@ def _cell_infos(out_dir: str, pattern: str = "*") -> list[tuple[str, int, str, d
     infos = []
     for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", f"{pattern}.json"))):
         parts = path.split(os.sep)
-        with open(path) as f:
-            infos.append((parts[-3], int(parts[-2][len("seed"):]), os.path.splitext(parts[-1])[0], json.load(f)))
+        infos.append((parts[-3], int(parts[-2][len("seed"):]), os.path.splitext(parts[-1])[0],
+                      load_json_file(path, what="Atari cell info")))  # fmt: skip
     return infos
 
 
@@ -110,6 +111,9 @@ def atari_comparison(log: ResultsLog | Sequence[dict], *, phase1_episodes: int, 
         >>> c.diff_episodes[0], c.diff_frames[0], c.num_seeds
         (1.0, 1.0, 3)
     """
+    check_int(phase1_episodes, "phase1_episodes", minimum=0)
+    check_int(final_window, "final_window", minimum=1)
+    check_number(confidence, "confidence", lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     data: dict[str, dict[str, dict[int, list[tuple[float, int | None]]]]] = defaultdict(lambda: defaultdict(dict))
     for r in sorted(rows, key=lambda r: (r["setting"], r["condition"], r["seed"], r["episode"])):
@@ -232,7 +236,13 @@ def atari_summary_pairs(conditions: Iterable[str]) -> list[tuple[str, str]]:
         >>> atari_summary_pairs(["A", "H1", "H1w", "H1wi"])
         [('H1', 'A'), ('H1w', 'A'), ('H1wi', 'A'), ('H1w', 'H1'), ('H1wi', 'H1'), ('H1wi', 'H1w')]
     """
-    have = [c for c in CONDITIONS if c in set(conditions)]
+    if isinstance(conditions, str):
+        raise TypeError(f"conditions must be an iterable of condition names, got the string {conditions!r}.")
+    conditions = set(conditions)
+    unknown = sorted(map(str, conditions - set(CONDITIONS)))
+    if unknown:
+        raise ValueError(f"conditions: unknown conditions {unknown}; expected some of {CONDITIONS}.")
+    have = [c for c in CONDITIONS if c in conditions]
     options = [c for c in have if _option_flags(c) is not None]
     pairs = [("H1", "A")] + [(c, "A") for c in options if c != "H1"] + [("A0", "A")]
     pairs += [(c, "A0") for c in options if not _option_flags(c).warm]
@@ -260,6 +270,7 @@ def atari_scores(
         >>> games, scores["H1"].shape, scores["H1"][:, 0].tolist()
         (['Pong', 'Seaquest'], (3, 2), [1.0, 2.0, 3.0])
     """
+    check_int(phase1_episodes, "phase1_episodes", minimum=0)
     rows = log.rows() if isinstance(log, ResultsLog) else list(log)
     returns: dict[tuple[str, str, int], list[tuple[int, float]]] = defaultdict(list)
     for r in rows:
@@ -430,8 +441,7 @@ def demonstration_fit_markdown(out_dir: str, *, tolerance: float = 0.05) -> str:
     """
     rows: dict[str, list[dict]] = defaultdict(list)
     for path in sorted(glob.glob(os.path.join(out_dir, "*", "seed*", "phase2.json"))):
-        with open(path) as f:
-            rows[os.path.basename(os.path.dirname(os.path.dirname(path)))].append(json.load(f))
+        rows[os.path.basename(os.path.dirname(os.path.dirname(path)))].append(load_json_file(path, what="phase-2 info"))
     if not rows:
         return ""
     lines = [

@@ -8,8 +8,9 @@ range) and one forward of the options module on a single step: cheap next to one
 """
 from __future__ import annotations
 
+import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -17,14 +18,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from torchrl_options.checks import check_int, check_positive_number
-
 __all__ = [
-    "check_trajectories",
-    "check_step_data",
+    "check_factories",
+    "check_meta_control_module",
     "check_options_module",
-    "check_discover_options",
-    "check_int",
+    "check_step_data",
+    "check_trajectories",
 ]
 
 _MASK = ("collector", "mask")
@@ -113,7 +112,13 @@ def check_step_data(
         obs = data.get(key)
         nxt_key = ("next", *((key,) if isinstance(key, str) else key))
         nxt = data.get(nxt_key, None)
-        if nxt is not None and nxt.shape != obs.shape:
+        if nxt is None:
+            raise ValueError(
+                f"the trajectories have no {nxt_key!r} entry: an option's termination is evaluated at the next "
+                f"observation, so every obs_keys entry {key!r} needs its {nxt_key!r} (TorchRL's rollouts and "
+                "collectors write it)."
+            )
+        if nxt.shape != obs.shape:
             raise ValueError(
                 f"{nxt_key!r} must have the shape of {key!r}, {list(obs.shape)}, got {list(nxt.shape)}."
             )
@@ -141,6 +146,33 @@ def check_step_data(
             raise ValueError(f"{action_key!r} holds action {int(valid.max())}, outside [0, num_actions={num_actions}).")
     if action_space == "continuous" and not action.is_floating_point():
         raise ValueError(f"action_space='continuous' needs float actions, {action_key!r} has dtype {action.dtype}.")
+    if action_space == "continuous" and action.ndim == 2:
+        raise ValueError(
+            f"action_space='continuous' needs {action_key!r} of shape [B, T, D] (D the action dimension), got "
+            f"{list(action.shape)}: for one-dimensional actions add the trailing dimension (action.unsqueeze(-1))."
+        )
+
+
+def _one_step_output(module: Any, data: TensorDictBase, name: str, key: str) -> tuple[TensorDictBase, torch.Tensor]:
+    """``module``'s output on the first step of a ``[B, T]`` batch (no gradients) and its ``key`` entry ``[..., K]``;
+    a module that cannot read the batch is refused with the per-step shapes of the entries it reads."""
+    if not isinstance(module, TensorDictModuleBase):
+        raise TypeError(f"{name} must be a TensorDictModuleBase, got {type(module).__name__}.")
+    step = data[:1, :1].clone(False)
+    try:
+        with torch.no_grad():
+            out = module(step.to(next(iter(module.parameters()), torch.empty(0)).device))
+    except (RuntimeError, KeyError, ValueError, IndexError) as err:
+        detail = " ".join(str(err).split())[:200]
+        shapes = {str(k): list(step.get(k).shape[2:]) for k in getattr(module, "in_keys", []) if k in step.keys(True)}
+        raise ValueError(
+            f"the {name} module cannot read the trajectories (per-step entry shapes {shapes}; another observation "
+            f"size than it was built for?): {type(err).__name__}: {detail}"
+        ) from None
+    entry = out.get(key, None)
+    if entry is None:
+        raise ValueError(f"the {name} module must write {key!r} [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    return out, entry
 
 
 def check_options_module(
@@ -151,64 +183,87 @@ def check_options_module(
     num_actions: int | None = None,
     action_space: str = "categorical",
     name: str = "options",
-) -> None:
+) -> int:
     """Runs ``options`` on one step of ``data`` and checks what it writes against ``num_options`` (and
-    ``num_actions``): a module of another K, or one that cannot read the observations, is refused here."""
-    if not isinstance(options, TensorDictModuleBase):
-        raise TypeError(f"{name} must be a TensorDictModuleBase, got {type(options).__name__}.")
-    step = data[:1, :1].clone(False)
-    try:
-        with torch.no_grad():
-            out = options(step.to(next(iter(options.parameters()), torch.empty(0)).device))
-    except (RuntimeError, KeyError, ValueError, IndexError) as err:
-        detail = " ".join(str(err).split())[:200]
-        shapes = {str(k): list(step.get(k).shape[2:]) for k in getattr(options, "in_keys", []) if k in step.keys(True)}
-        raise ValueError(
-            f"the {name} module cannot read the trajectories (per-step entry shapes {shapes}; another observation "
-            f"size than it was built for?): {type(err).__name__}: {detail}"
-        ) from None
-    term = out.get("termination_logits", None)
-    if term is None:
-        raise ValueError(f"the {name} module must write 'termination_logits' [..., K]; it wrote {sorted(map(str, out.keys(True)))}.")
+    ``num_actions``): a module of another K, or one that cannot read the observations, is refused here. Returns the
+    module's number of options K."""
+    out, term = _one_step_output(options, data, name, "termination_logits")
     if num_options is not None and int(term.shape[-1]) != num_options:
         raise ValueError(f"num_options={num_options} but the {name} module has K={int(term.shape[-1])} options.")
     logits = out.get("option_logits", None)
     if action_space == "categorical" and logits is not None and num_actions is not None and logits.shape[-1] != num_actions:
         raise ValueError(f"num_actions={num_actions} but the {name} module has A={int(logits.shape[-1])} actions.")
+    return int(term.shape[-1])
 
 
-def check_discover_options(
-    trajectories: Any,
-    num_options: Any,
+def _takes_keyword(factory: Callable[..., Any], name: str) -> bool:
+    try:
+        parameters = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):  # a builtin without a signature: let the call tell
+        return True
+    return any(p.kind is p.VAR_KEYWORD or (p.name == name and p.kind is not p.POSITIONAL_ONLY) for p in parameters)
+
+
+def check_factories(
+    options: Any,
+    options_factory: Any,
+    meta_control: Any,
+    meta_control_factory: Any,
     *,
-    options: Any = None,
-    meta_control: Any = "uniform",
-    num_actions: Any = None,
-    action_space: str = "categorical",
-    obs_keys: Any = "observation",
-    action_key: NestedKey = "action",
+    init_scale: Any = None,
+    num_cells: Any = 8,
 ) -> None:
-    """All of :func:`~torchrl_options.discover_options`' input checks that read the data (the scalar settings
-    are checked in the function). Replay buffers are checked when sampled."""
-    from torchrl.data import ReplayBuffer
+    """Checks :func:`~torchrl_options.discover_options`' ``options_factory`` and ``meta_control_factory``: callables
+    (not module instances: those go to ``options`` / ``meta_control``), not both an options module and a factory,
+    a meta-control factory only with ``meta_control="learned"``, ``init_scale`` only for the default modules, and
+    factories that take ``num_cells`` with ``num_cells="auto"``.
 
-    from torchrl_options.discovery.discover import as_trajectory_batch
+    Examples:
+        >>> from torchrl_options import OptionsMLP
+        >>> check_factories(None, lambda: OptionsMLP(2, 3, 4), "uniform", None)
+        >>> check_factories(OptionsMLP(2, 3, 4), None, "uniform", None, init_scale=0.3)
+        Traceback (most recent call last):
+        ...
+        ValueError: init_scale sets the starting standard deviation of the default Gaussian options; the options given (options=OptionsMLP) are built by the caller: give init_scale to the module (GaussianOptionsMLP(..., init_scale=...)) or leave it None.
+    """
+    for name, factory, instead in (("options_factory", options_factory, "options"),
+                                   ("meta_control_factory", meta_control_factory, "meta_control")):  # fmt: skip
+        if factory is None:
+            continue
+        if isinstance(factory, TensorDictModuleBase):
+            raise TypeError(
+                f"{name} must be a callable that builds a fresh module on each call, got a module instance "
+                f"({type(factory).__name__}): pass it as {instead}= to train that one module."
+            )
+        if not callable(factory):
+            raise TypeError(f"{name} must be a callable returning a fresh module, got {type(factory).__name__}.")
+        if isinstance(num_cells, str) and not _takes_keyword(factory, "num_cells"):
+            raise ValueError(
+                f"num_cells='auto' fits modules of each width in AUTO_WIDTHS: {name} must take a num_cells keyword "
+                f"(called as {name}(num_cells=width)); {getattr(factory, '__name__', type(factory).__name__)} does not."
+            )
+    if options is not None and options_factory is not None:
+        raise ValueError(
+            "give options (one module, trained once) or options_factory (a fresh module per start), not both."
+        )
+    if meta_control_factory is not None and not (isinstance(meta_control, str) and meta_control == "learned"):
+        raise ValueError(
+            "meta_control_factory builds the learned meta-control of each start: it needs meta_control='learned', "
+            f"got meta_control={meta_control if isinstance(meta_control, str) else type(meta_control).__name__!r}."
+        )
+    if init_scale is not None and (options is not None or options_factory is not None):
+        given = f"options={type(options).__name__}" if options is not None else "options_factory"
+        raise ValueError(
+            "init_scale sets the starting standard deviation of the default Gaussian options; the options given "
+            f"({given}) are built by the caller: give init_scale to the module (GaussianOptionsMLP(..., "
+            "init_scale=...)) or leave it None."
+        )
 
-    check_int(num_options, "num_options", minimum=1)
-    check_int(num_actions, "num_actions", minimum=1, allow_none=True)
-    if options is not None and not isinstance(options, TensorDictModuleBase):
-        raise TypeError(f"options must be None or a TensorDictModuleBase, got {type(options).__name__}.")
-    if not isinstance(meta_control, (str, TensorDictModuleBase)):
-        raise TypeError(f"meta_control must be 'uniform', 'learned' or a module, got {type(meta_control).__name__}.")
-    if isinstance(trajectories, ReplayBuffer):
-        return
-    data = as_trajectory_batch(trajectories)
-    keys = [obs_keys] if isinstance(obs_keys, (str, tuple)) else list(obs_keys)
-    check_step_data(data, obs_keys=keys, action_key=action_key, action_space=action_space, num_actions=num_actions)
-    if options is not None:
-        check_options_module(options, data, num_options, num_actions=num_actions, action_space=action_space)
-    if isinstance(meta_control, TensorDictModuleBase):
-        out = meta_control(data[:1, :1].clone(False))
-        logits = out.get("meta_logits", None)
-        if logits is not None and logits.shape[-1] != num_options:
-            raise ValueError(f"num_options={num_options} but the meta_control module writes {logits.shape[-1]} meta_logits.")
+
+def check_meta_control_module(
+    meta_control: Any, data: TensorDictBase, num_options: int, *, name: str = "meta_control"
+) -> None:
+    """Runs a meta-control module on one step of ``data`` and checks that it writes ``meta_logits`` ``[..., K]``."""
+    _, logits = _one_step_output(meta_control, data, name, "meta_logits")
+    if logits.shape[-1] != num_options:
+        raise ValueError(f"num_options={num_options} but the {name} module writes {logits.shape[-1]} meta_logits.")

@@ -1,0 +1,131 @@
+"""Bad inputs of torchrl_options.segmentation and torchrl_options.testing (issue 53's walk of the public API):
+boundary metrics, segment labels, the demonstration generators and the planted problems' scores. One row per case,
+controls included."""
+import numpy as np
+import pytest
+import torch
+
+from _bad_inputs import check, ids, OK
+from torchrl_options import OptionsMLP
+from torchrl_options.segmentation import (
+    as_boundary_lists,
+    boundaries_from_options,
+    boundary_accuracy,
+    boundary_metrics,
+    boundary_precision_recall_f1,
+    dead_ends,
+    diamond_map,
+    expected_random_accuracy,
+    gridworld_subgoal_demonstrations,
+    plot_segmentation,
+    random_baseline,
+    random_boundaries,
+    reach_grasp_demonstrations,
+    segment,
+    trajectories_from_arrays,
+)
+from torchrl_options.testing import (
+    best_matching_accuracy,
+    label_accuracy,
+    planted_corridor_demonstrations,
+    planted_gaussian_demonstrations,
+    planted_tabular_demonstrations,
+    planted_two_level_demonstrations,
+    planted_two_level_log_probabilities,
+    posterior_accuracy,
+)
+
+NAN = float("nan")
+L = torch.zeros(2, 3, dtype=torch.long)
+D = planted_corridor_demonstrations(2, 6, seed=0)
+
+CASES = [
+    ("boundary_metrics", "window NaN", lambda: boundary_metrics([[0, 3]], [[0, 3]], NAN, lengths=[5]), ValueError,
+     "window must be a non-negative integer number of steps, got nan"),
+    ("boundary_metrics", "window negative", lambda: boundary_metrics([[0, 3]], [[0, 3]], -1, lengths=[5]), ValueError,
+     "window must be a non-negative integer"),
+    ("boundary_metrics", "a negative step", lambda: boundary_metrics([[-1]], [[0, 3]], 1, lengths=[5]), ValueError,
+     "predicted[0] holds a negative step index -1"),
+    ("boundary_metrics", "lengths for other trajectories", lambda: boundary_metrics([[0, 3]], [[0, 3]], 1, lengths=[5, 5]), ValueError,
+     "lengths has 2 entries for 1 trajectories"),
+    ("boundary_metrics", "control: a boundary past the length is dropped (padding)",
+     lambda: boundary_metrics([[0, 9]], [[0, 3]], 1, lengths=[5]), OK, None),
+    ("boundary_accuracy", "predicted of another count", lambda: boundary_accuracy([[1]], [[1], [2]], 1), ValueError,
+     "predicted has 1 trajectories but reference has 2"),
+    ("boundary_precision_recall_f1", "step indices that are strings", lambda: boundary_precision_recall_f1("ab", [[0]], 1, lengths=[3]),
+     TypeError, "predicted must be [B, T] booleans (a tensor or array) or a list of index lists, got str"),
+    ("as_boundary_lists", "an int", lambda: as_boundary_lists(3), TypeError, "boundaries must be [B, T] booleans"),
+    ("as_boundary_lists", "a 3-D array", lambda: as_boundary_lists(torch.zeros(2, 3, 4, dtype=torch.bool)), ValueError,
+     "boundaries must be [B, T] booleans or a list of index lists, got shape (2, 3, 4)"),
+    ("as_boundary_lists", "a [B, T] array of other numbers", lambda: as_boundary_lists(np.full((2, 3), 2)), ValueError,
+     "must be boolean (or 0/1)"),
+    ("expected_random_accuracy", "negative lengths", lambda: expected_random_accuracy([[0]], [-1], 1), ValueError, "lengths must be non-negative"),
+    ("random_boundaries", "rate 2", lambda: random_boundaries([5], 2.0), ValueError, "rate must be in [0, 1]"),
+    ("random_boundaries", "rate NaN", lambda: random_boundaries([5], NAN), ValueError, "rate must be in [0, 1]"),
+    ("random_baseline", "num_samples 0", lambda: random_baseline([[0]], [5], 1, 0.5, num_samples=0), ValueError, "num_samples must be positive"),
+    ("boundaries_from_options", "1-D labels (IndexError before)", lambda: boundaries_from_options(torch.zeros(5, dtype=torch.long)),
+     ValueError, "options must be a 2-dimensional tensor"),
+    ("boundaries_from_options", "float labels", lambda: boundaries_from_options(torch.zeros(2, 5)), ValueError,
+     "options must be an integer tensor"),
+    ("boundaries_from_options", "a mask of another shape",
+     lambda: boundaries_from_options(torch.zeros(2, 5, dtype=torch.long), torch.ones(2, 4, dtype=torch.bool)), ValueError,
+     "mask must have shape [2, 5], got shape [2, 4]"),
+    ("boundaries_from_options", "a mask on another device",
+     lambda: boundaries_from_options(torch.zeros(2, 5, dtype=torch.long), torch.ones(2, 5, dtype=torch.bool, device="meta")), ValueError,
+     "mask is on device meta"),
+    ("boundaries_from_options", "control: padding as -1", lambda: boundaries_from_options(torch.tensor([[0, 1, -1]])), OK, None),
+    ("segment", "method unknown", lambda: segment(D, OptionsMLP(10, 2, 2), method="greedy"), ValueError, "method must be 'viterbi' or 'posterior'"),
+    ("segment", "boundary unknown", lambda: segment(D, OptionsMLP(10, 2, 2), boundary="edge"), ValueError, "boundary must be 'change' or 'switch'"),
+    ("plot_segmentation", "max_trajectories 0", lambda: plot_segmentation(L, max_trajectories=0), ValueError,
+     "max_trajectories must be an int >= 1"),
+    ("plot_segmentation", "labels of rank 0", lambda: plot_segmentation(3), ValueError, "options must be [B, T]"),
+    ("trajectories_from_arrays", "not a mapping", lambda: trajectories_from_arrays(3), TypeError, "arrays must be a mapping"),
+    ("gridworld_subgoal_demonstrations", "no trajectory (an empty batch before)", lambda: gridworld_subgoal_demonstrations(0), ValueError,
+     "num_trajectories must be an int >= 1"),
+    ("gridworld_subgoal_demonstrations", "noise 2", lambda: gridworld_subgoal_demonstrations(2, 10, noise=2.0), ValueError,
+     "noise must be in [0, 1)"),
+    ("gridworld_subgoal_demonstrations", "tour unknown", lambda: gridworld_subgoal_demonstrations(2, 10, tour="x"), ValueError,
+     "tour must be 'patrol' or 'random'"),
+    ("reach_grasp_demonstrations", "no trajectory", lambda: reach_grasp_demonstrations(0), ValueError,
+     "num_trajectories and max_length must be positive"),
+    ("reach_grasp_demonstrations", "speed negative", lambda: reach_grasp_demonstrations(2, speed=-1.0), ValueError, "need speed > 0"),
+    ("diamond_map", "radius 0", lambda: diamond_map(0), ValueError, "radius must be at least 2"),
+    ("dead_ends", "not a map", lambda: dead_ends(3), ValueError, "Unknown map '3'"),
+    # ---- testing
+    ("planted_corridor_demonstrations", "no trajectory (an empty batch before)", lambda: planted_corridor_demonstrations(0), ValueError,
+     "num_trajectories must be an int >= 1"),
+    ("planted_corridor_demonstrations", "action_noise 2", lambda: planted_corridor_demonstrations(2, 10, action_noise=2.0), ValueError,
+     "action_noise must be a number in [0, 1]"),
+    ("planted_corridor_demonstrations", "a corridor of one cell", lambda: planted_corridor_demonstrations(2, 10, size=1), ValueError,
+     "size must be an int >= 2"),
+    ("planted_gaussian_demonstrations", "lengths (5, 3)", lambda: planted_gaussian_demonstrations(2, (5, 3)), ValueError,
+     "lengths[1] must be an int >= 5"),
+    ("planted_gaussian_demonstrations", "no trajectory", lambda: planted_gaussian_demonstrations(0, (3, 5)), ValueError,
+     "num_trajectories must be an int >= 1"),
+    ("planted_tabular_demonstrations", "a policy without the action dimension",
+     lambda: planted_tabular_demonstrations(torch.ones(2, 3), torch.ones(2), torch.ones(3, 3, dtype=torch.long), torch.eye(3),
+                                            num_trajectories=2, lengths=(2, 3)), ValueError, "policy must be a 3-dimensional tensor"),
+    ("planted_two_level_demonstrations", "no trajectory", lambda: planted_two_level_demonstrations(0), ValueError,
+     "num_trajectories must be an int >= 1"),
+    ("planted_two_level_log_probabilities", "not a TensorDict", lambda: planted_two_level_log_probabilities(3), TypeError,
+     "data must be the [B, T] TensorDict"),
+    ("label_accuracy", "shapes that differ", lambda: label_accuracy(L, torch.zeros(2, 4, dtype=torch.long)), ValueError,
+     "label_accuracy: predicted must have shape [2, 4], got shape [2, 3]"),
+    ("label_accuracy", "an all-False mask (RuntimeError before)", lambda: label_accuracy(L, L, torch.zeros(2, 3, dtype=torch.bool)),
+     ValueError, "no valid step to score"),
+    ("label_accuracy", "float labels", lambda: label_accuracy(L.float(), L.float()), ValueError, "truth must be an integer tensor"),
+    ("best_matching_accuracy", "shapes that differ", lambda: best_matching_accuracy(L, torch.zeros(3, dtype=torch.long)), ValueError,
+     "predicted must have shape [3]"),
+    ("best_matching_accuracy", "a negative label (IndexError before)", lambda: best_matching_accuracy(torch.full((2, 3), -2), L),
+     ValueError, "predicted holds a negative label on a valid step"),
+    ("best_matching_accuracy", "control: labels -1 on padding",
+     lambda: best_matching_accuracy(torch.tensor([[0, -1]]), torch.tensor([[0, -1]]), torch.tensor([[True, False]])), OK, None),
+    ("posterior_accuracy", "log_probs without the mask (KeyError before)", lambda: posterior_accuracy({}, L), ValueError,
+     "log_probs lacks ['log_pi', 'log_term', 'log_cont', 'log_eta', 'mask']"),
+    ("posterior_accuracy", "log_probs not a dict", lambda: posterior_accuracy([1], L), TypeError, "log_probs must be a dict"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("api, case, call, error, phrase", CASES, ids=ids(CASES))
+def test_segmentation_and_testing_bad_inputs(api, case, call, error, phrase):
+    check(call, error, phrase)
