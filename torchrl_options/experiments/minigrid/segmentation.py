@@ -2,13 +2,13 @@
 bot's subgoals and skills next to the trivial baselines (:mod:`~torchrl_options.experiments.minigrid.scoring`).
 
 A *method* is a dict of :func:`~torchrl_options.discover_options` keyword arguments plus ``network``: ``"mlp"``
-(the default :class:`~torchrl_options.OptionsMLP` that ``discover_options`` builds, with its segment starts and
-restarts), ``"mlp-module"`` (an :class:`~torchrl_options.OptionsMLP` built here and passed as ``options=``) or
-``"conv"`` (a :class:`~torchrl_options.modules.GridConvOptions` passed as ``options=``). A module passed in is
-trained from its random weights in one start (``discover_options``'s rule for given modules), so ``"mlp-module"``
-is the like-for-like comparison of ``"conv"``; both are built by :func:`option_factory`, which
-``discover_options`` can take directly once it accepts a factory of fresh modules (then every start is a fresh
-module, pre-trained on segments as the default MLP's are).
+(the default :class:`~torchrl_options.OptionsMLP` that ``discover_options`` builds), ``"mlp-module"`` (an
+:class:`~torchrl_options.OptionsMLP` built here) or ``"conv"`` (a :class:`~torchrl_options.modules.GridConvOptions`).
+For ``"mlp-module"`` and ``"conv"`` the modules are made by :func:`option_factory` and given to
+``discover_options(options_factory=...)``, so they get the default modules' starts (segment starts, restarts):
+``starts="factory"``, the default. ``starts="given"`` passes one module made from the seed as ``options=``
+instead, trained from its random weights in one start: how rounds 1-4 of ``docs/experiments/minigrid.md`` ran
+(their records have no ``starts`` entry).
 
 Seed ``s`` uses the layouts ``1000 s, 1000 s + 1, ...`` (seed 0: the layouts of issue 50's probe) and seeds DDO
 with ``s``.
@@ -23,11 +23,14 @@ import torch
 
 from torchrl_options.checkpoints import scoped_seed
 
-__all__ = ["NETWORKS", "option_factory", "segmentation_cell", "LAYOUTS_PER_SEED"]
+__all__ = ["NETWORKS", "option_factory", "segmentation_cell", "LAYOUTS_PER_SEED", "STARTS"]
 
 logger = logging.getLogger(__name__)
 
 NETWORKS = ("mlp", "mlp-module", "conv")
+#: how a module of :func:`option_factory` starts: ``"factory"`` (``discover_options(options_factory=...)``, every
+#: start a fresh module) or ``"given"`` (one module passed as ``options=``, one random start)
+STARTS = ("factory", "given")
 #: seed ``s`` draws its demonstrations from the layouts ``LAYOUTS_PER_SEED * s + i``
 LAYOUTS_PER_SEED = 1000
 
@@ -78,7 +81,8 @@ def segmentation_cell(
 
     Keyword Args:
         method (dict, optional): ``network`` (:data:`NETWORKS`, default ``"mlp"``), ``num_options`` (default 5),
-            ``conv`` (keyword arguments of :class:`~torchrl_options.modules.GridConvOptions`) and any other
+            ``conv`` (keyword arguments of :class:`~torchrl_options.modules.GridConvOptions`), ``starts``
+            (:data:`STARTS`, default ``"factory"``; not for ``"mlp"``) and any other
             :func:`~torchrl_options.discover_options` keyword argument. ``{}``: issue 50's probe
             (``discover_options(data, num_options=5)`` with the defaults).
         num_demonstrations (int): bot episodes. Defaults to 100.
@@ -94,6 +98,7 @@ def segmentation_cell(
         the subgoal types and the skills).
     """
     from torchrl_options import discover_options, segment
+    from torchrl_options.checks import check_choice
     from torchrl_options.experiments.minigrid.demonstrations import bot_demonstrations, SKILLS, SUBGOAL_TYPES
     from torchrl_options.experiments.minigrid.scoring import (
         baseline_scores,
@@ -106,24 +111,39 @@ def segmentation_cell(
     network = method.pop("network", "mlp")
     num_options = int(method.pop("num_options", 5))
     conv = method.pop("conv", None)
+    starts = method.pop("starts", None)
+    check_choice(network, "network", NETWORKS)
+    if network == "mlp" and starts is not None:
+        raise ValueError("method: starts is for the modules of option_factory (network 'mlp-module' or 'conv'); "
+                         "the default 'mlp' modules always get discover_options' starts.")
+    starts = "factory" if starts is None and network != "mlp" else starts
+    if starts is not None:
+        check_choice(starts, "starts", STARTS)
     if demonstrations is None:
         demonstrations = bot_demonstrations(level, num_demonstrations, first_seed=LAYOUTS_PER_SEED * seed).data
     data = demonstrations
     factory = option_factory(network, num_options, in_features=int(data["observation"].shape[-1]),
                              num_cells=method.get("num_cells", 8), conv=conv)  # fmt: skip
-    options = None
-    if factory is not None:
+    modules: dict = {}
+    if starts == "factory":
+        modules["options_factory"] = factory  # called after discover_options seeds: the weights come from seed
+        # the modules have all of MiniGrid's actions (the bot never takes "done"): tell DDO, not the record
+        modules.setdefault("num_actions", method.pop("num_actions", int(factory().num_actions)))
+    elif starts == "given":
         with scoped_seed(seed):  # the module's initial weights come from the seed
-            options = factory()  # once discover_options takes a factory: options=factory
+            modules["options"] = factory()
+    # the factory's width (recorded); discover_options' num_cells describes its own default modules only
+    num_cells = method.pop("num_cells", None) if factory is not None else None
     t0 = time.process_time()
-    result = discover_options(data, num_options, options=options, seed=seed, progress=False, return_info=True,
-                              **method)  # fmt: skip
+    result = discover_options(data, num_options, seed=seed, progress=False, return_info=True, **modules, **method)
     seconds = time.process_time() - t0
     seg = segment(data, result)
     out = {
         "level": level,
         "seed": seed,
-        "method": {"network": network, "num_options": num_options, **({"conv": conv} if conv else {}), **method},
+        "method": {"network": network, "num_options": num_options, **({"conv": conv} if conv else {}),
+                   **({"starts": starts} if starts is not None else {}), **method,
+                   **({"num_cells": num_cells} if num_cells is not None else {})},
         "num_steps": int(data["collector", "mask"].sum()),
         "fit": {
             "log_likelihood_per_step": result.final_log_likelihood_per_step,
