@@ -90,7 +90,7 @@ CASES = [
     ("OnPolicyDecisions", "control: other distinct keys", lambda: OPD(0.9, steps_key="k", end_of_batch_key="cut")(steps()), OK, None),
     ("OnPolicyDecisions", "gamma above 1", lambda: OPD(1.5), ValueError, "gamma must be a number in [0, 1]"),
     ("OnPolicyDecisions", "gamma NaN", lambda: OPD(NAN), ValueError, "gamma must be a number in [0, 1]"),
-    ("OnPolicyDecisions", "gamma a string", lambda: OPD("0.9"), ValueError, "gamma must be a number in [0, 1]"),
+    ("OnPolicyDecisions", "gamma a string", lambda: OPD("0.9"), TypeError, "gamma must be a number"),
     ("OnPolicyDecisions", "control: gamma 0 and 1", lambda: (OPD(0.0), OPD(1)), OK, None),
     # ---- OnPolicyDecisions: the data
     ("OnPolicyDecisions", "issue: a batch without ('next', 'done')", lambda: OPD(0.9)(steps(done=False)), ValueError,
@@ -172,8 +172,8 @@ CASES = [
      ValueError, "reward_key and steps_key are both"),
     ("SMDPTransform", "a flag that is not a bool", lambda: SMDPTransform(0.9, option_suffixes=1), TypeError,
      "option_suffixes must be True or False"),
-    ("SMDPTransform", "num_actions a float", lambda: SMDPTransform(0.9, num_actions=2.0), ValueError,
-     "num_actions must be a positive int or None"),
+    ("SMDPTransform", "num_actions a float", lambda: SMDPTransform(0.9, num_actions=2.0), TypeError,
+     "num_actions must be an int or None"),
     ("SMDPTransform", "control: intra-option transitions with their defaults",
      lambda: SMDPTransform(0.9, intra_option_actions=True, num_actions=2), OK, None),
     # ---- intra_option_transitions / option_suffix_transitions
@@ -203,7 +203,7 @@ CASES = [
     ("option_suffix_transitions", "action_offset a float", lambda: option_suffix_transitions(steps(), 0.9, action_offset=1.5),
      TypeError, "action_offset must be an int"),
     ("option_suffix_transitions", "gamma NaN", lambda: option_suffix_transitions(steps(), NAN, action_offset=2), ValueError,
-     "gamma must lie in [0, 1]"),
+     "gamma must be a number in [0, 1]"),
     ("option_suffix_transitions", "not a TensorDict", lambda: option_suffix_transitions([1], 0.9, action_offset=2),
      TypeError, "expects a TensorDict"),
     ("option_suffix_transitions", "control: options only (offset 0)",
