@@ -9,13 +9,15 @@ MiniGrid through TorchRL's GymWrapper, the one-hot view as a 984-float observati
   policy over the 7 actions, ``--hidden`` units) on the batched env: the baseline of the ratios;
 - ``collect A+K``: the same with the ``OptionExecutor`` appended (K options, an ``OptionsMLP`` with 8 hidden
   units, the size DDO discovers) and the policy over the ``7 + K`` augmented actions;
-- ``OptionsPPO A``: the package's PPO over actions only, collection and updates (``frames_per_batch`` =
-  ``--frames``, 4 epochs of minibatches of 64);
+- ``TorchRL PPO A``: TorchRL's plain PPO loop written from its parts, collection and updates: the collector
+  above, a ``ValueOperator`` critic, ``GAE`` (gamma 0.99, lambda 0.95) and ``ClipPPOLoss`` (entropy 0.01) with Adam,
+  4 epochs of minibatches of 64 per batch of ``--frames`` frames;
+- ``OptionsPPO A``: the package's PPO over actions only, collection and updates (the same sizes);
 - ``OptionsPPO A+K``: the same over actions and options.
 
 The options are untrained (throughput depends on how long options run, not on what they do; untrained ones stop
-after about 2 steps, so the executor runs often). The two collection rows take turns, ``--frames`` frames each per
-round, so load on a shared machine affects both alike; ``OptionsPPO.train`` builds a collector per call, so each
+after about 2 steps, so the executor runs often). The three collector rows take turns, ``--frames`` frames each per
+round, so load on a shared machine affects them alike; ``OptionsPPO.train`` builds a collector per call, so each
 OptionsPPO row runs its ``--rounds`` batches in one call, timed batch by batch from its callback (after a first
 batch that starts the envs). The table gives the median frames/s over the rounds (batches) in wall time and in
 process CPU time (the ParallelEnv's workers are other processes: its CPU column counts the driver only), and the
@@ -38,7 +40,9 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.envs import ExplorationType, ParallelEnv, SerialEnv
-from torchrl.modules import MLP, ProbabilisticActor
+from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
 
 from torchrl_options import OptionExecutor, OptionsMLP, OptionsPPO, OptionsPPOConfig
 from torchrl_options.envs.minigrid import make_minigrid_env, observation_size
@@ -68,6 +72,35 @@ class _Collect:
 
     def close(self) -> None:
         self.collector.shutdown()
+
+
+class _PlainPPO(_Collect):
+    """TorchRL's PPO from its parts on ``env``: each call collects ``frames`` frames and runs 4 epochs of ClipPPOLoss
+    over minibatches of 64 (the sizes of OptionsPPO's rows)."""
+
+    def __init__(self, env, frames: int, hidden: int):
+        super().__init__(env, frames, hidden)
+        actor = self.collector.policy
+        critic = ValueOperator(MLP(in_features=observation_size(), out_features=1, num_cells=[hidden, hidden],
+                                   activation_class=nn.Tanh), in_keys=["observation"])  # fmt: skip
+        self.gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic)
+        self.loss = ClipPPOLoss(actor, critic, entropy_coeff=0.01)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=3e-4)
+
+    def run(self) -> int:
+        batch = next(self.iterator)
+        with torch.no_grad():
+            self.gae(batch)
+        flat = batch.reshape(-1)
+        for _ in range(4):
+            for idx in torch.randperm(flat.numel()).split(64):
+                losses = self.loss(flat[idx])
+                total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
+                self.optim.zero_grad()
+                total.backward()
+                self.optim.step()
+        self.collector.update_policy_weights_()
+        return self.frames
 
 
 class _Train:
@@ -124,6 +157,7 @@ def main() -> None:
         collect = {
             "collect A": _Collect(batched(), args.frames, args.hidden),
             f"collect A+{k}": _Collect(with_executor, args.frames, args.hidden),
+            "TorchRL PPO A": _PlainPPO(batched(), args.frames, args.hidden),
         }
         wall = {n: [] for n in collect}
         cpu = {n: [] for n in collect}

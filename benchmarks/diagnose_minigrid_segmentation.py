@@ -50,7 +50,10 @@ def main(argv=None) -> int:
     for level in args.level:
         for method in methods:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                label = method_label({"network": "mlp", "num_options": 5, **method})
+                full = {"network": "mlp", "num_options": 5, **method}
+                if full["network"] != "mlp":  # the record names the default starts of option_factory's modules
+                    full.setdefault("starts", "factory")
+                label = method_label(full)
                 if (level, label, seed) in done:
                     continue
                 t0 = time.time()

@@ -206,6 +206,37 @@ def test_segmentation_cell_record_is_plain_data_and_baselines_do_not_depend_on_t
 
 
 @needs_minigrid
+def test_custom_modules_get_the_default_starts_through_options_factory(demos, monkeypatch):
+    """``starts="factory"`` (the default for option_factory's modules) hands discover_options a factory, so every
+    restart is a fresh module; ``starts="given"`` passes one module made from the seed (rounds 1-4)."""
+    import torchrl_options
+    from torchrl_options.experiments.minigrid import segmentation_cell
+
+    calls = []
+    real = torchrl_options.discover_options
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torchrl_options, "discover_options", spy)
+    method = {"network": "conv", "num_options": 2, "num_iterations": 3, "restarts": 2, "restart_iterations": 2}
+    a = segmentation_cell(TINY, 0, method=dict(method), demonstrations=demos.data)
+    again = segmentation_cell(TINY, 0, method=dict(method), demonstrations=demos.data)
+    given = {k: v for k, v in method.items() if not k.startswith("restart")}  # one module: one start
+    b = segmentation_cell(TINY, 0, method={**given, "starts": "given"}, demonstrations=demos.data)
+    assert callable(calls[0]["options_factory"]) and "options" not in calls[0] and calls[0]["num_actions"] == 7
+    assert isinstance(calls[2]["options"], torch.nn.Module) and "options_factory" not in calls[2]
+    assert a["method"]["starts"] == "factory" and b["method"]["starts"] == "given"
+    assert a["subgoal"]["ddo"] == again["subgoal"]["ddo"] and a["labels"] == again["labels"]  # seeded
+    assert a["fit"]["log_likelihood_per_step"] != b["fit"]["log_likelihood_per_step"]
+    with pytest.raises(ValueError, match="starts is for the modules of option_factory"):
+        segmentation_cell(TINY, 0, method={"starts": "given"}, demonstrations=demos.data)
+    with pytest.raises(ValueError, match="starts"):
+        segmentation_cell(TINY, 0, method={"network": "conv", "starts": "twice"}, demonstrations=demos.data)
+
+
+@needs_minigrid
 def test_options_files_round_trip_both_networks(tmp_path):
     from tensordict import TensorDict
 
