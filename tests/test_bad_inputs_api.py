@@ -8,7 +8,7 @@ import pytest
 TABLES = [
     "test_bad_inputs_agents", "test_bad_inputs_data", "test_bad_inputs_discovery", "test_bad_inputs_envs",
     "test_bad_inputs_experiments", "test_bad_inputs_files", "test_bad_inputs_inference", "test_bad_inputs_modules",
-    "test_bad_inputs_segmentation",
+    "test_bad_inputs_segmentation", "test_bad_inputs_streaming",
 ]  # fmt: skip
 PACKAGES = [
     "torchrl_options", "torchrl_options.agents", "torchrl_options.data", "torchrl_options.discovery",

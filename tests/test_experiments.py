@@ -214,9 +214,32 @@ KEPT_GRIDWORLD_FIGURES = [
     ("four_rooms_paper_5000_A", {"A": "0.345 [0.310, 0.380]"}),
     ("three_rooms_paper_1000", {"exploration/A": "0.036 [0.023, 0.050]", "exploration/H1u": "0.011 [-0.004, 0.026]",
                                 "exploration/H1u - A": "-0.026 [-0.039, -0.012] | behind"}),
+    # protocol=ours (issue 49): the main job with discover_options' defaults; the exploration setting on the agent's
+    # rewarded one-episode rollouts
+    ("four_rooms_default_ours", {"A": "0.273 [0.195, 0.351]", "H1u": "3.172 [2.785, 3.558]", "H1s": "1.437 [0.977, 1.897]",
+                                 "H1u - A": "+2.898 [+2.566, +3.230] | ahead", "H1s - A": "+1.163 [+0.697, +1.630] | ahead"}),
+    ("four_rooms_exploration_ours", {"exploration/A": "0.323 [0.280, 0.366]", "exploration/H1u": "0.451 [0.390, 0.511]",
+                                     "exploration/H2u": "0.439 [0.374, 0.504]",
+                                     "exploration/H1u - A": "+0.127 [+0.057, +0.198] | ahead",
+                                     "exploration/H2u - A": "+0.115 [+0.035, +0.195] | ahead"}),
+    ("three_rooms_ours_1000", {"exploration/A": "0.036 [0.023, 0.050]", "exploration/H1u": "0.033 [0.002, 0.064]",
+                               "exploration/H1u - A": "-0.003 [-0.036, +0.029] | no evidence"}),
+    ("four_rooms_exploration_variants/segdef", {"exploration/H1u": "0.480 [0.385, 0.575]",
+                                                "exploration/H1u - A": "+0.134 [+0.074, +0.194] | ahead"}),
+    ("four_rooms_exploration_variants/segdefH2", {"exploration/H2u": "0.434 [0.313, 0.555]",
+                                                  "exploration/H2u - A": "+0.088 [-0.043, +0.219] | no evidence"}),
+    ("four_rooms_exploration_variants/greedydef", {"exploration/H1u": "0.330 [0.304, 0.356]",
+                                                   "exploration/H1u - A": "+0.007 [-0.122, +0.137] | no evidence"}),
+    ("four_rooms_exploration_variants/segpaper", {"exploration/H1u": "0.422 [0.305, 0.539]",
+                                                  "exploration/H1u - A": "+0.076 [-0.035, +0.187] | no evidence"}),
+    ("four_rooms_exploration_variants/epsall", {"exploration/H1u": "0.393 [0.351, 0.434]",
+                                                "exploration/H1u - A": "+0.070 [-0.053, +0.193] | no evidence"}),
 ]
 SEEDS = {  # the others: 3
     "four_rooms_paper_1000": 15, "four_rooms_paper_5000_A": 15, "three_rooms_paper_1000": 10, "four_rooms_ppo_15seeds": 15,
+    "four_rooms_default_ours": 6, "four_rooms_exploration_ours": 15, "three_rooms_ours_1000": 10, "four_rooms_exploration_variants/segdef": 5,
+    "four_rooms_exploration_variants/segdefH2": 5, "four_rooms_exploration_variants/greedydef": 4,
+    "four_rooms_exploration_variants/segpaper": 5, "four_rooms_exploration_variants/epsall": 4,
 }
 KEPT_PPO_FIGURES = [  # quoted on docs/ppo.md, the paired ones in the README's results table
     ("four_rooms_ppo_15seeds", {"A": "0.517 [0.471, 0.563]", "H1u": "0.713 [0.665, 0.760]",
@@ -227,7 +250,8 @@ NOT_QUOTED = {"0.340 [0.146, 0.534]"}  # recomputed from the kept run, not quote
 README_HEADLINES = {"+0.150 [+0.019, +0.281]", "+0.170 [-0.033, +0.373]", "0.830 [0.679, 0.981]",
                     "+0.427 [+0.302, +0.552]", "+0.368 [+0.262, +0.474]",
                     "1.091 [1.009, 1.172]", "0.782 [0.703, 0.861]", "+0.000 [-0.045, +0.045]", "0.345 [0.310, 0.380]",
-                    "-0.026 [-0.039, -0.012]"}
+                    "-0.026 [-0.039, -0.012]", "0.273 [0.195, 0.351]", "+2.898 [+2.566, +3.230]", "+1.163 [+0.697, +1.630]",
+                    "+0.127 [+0.057, +0.198]", "+0.115 [+0.035, +0.195]", "-0.003 [-0.036, +0.029]"}
 
 
 @pytest.mark.parametrize("folder, expected", KEPT_GRIDWORLD_FIGURES + KEPT_PPO_FIGURES)
@@ -272,3 +296,34 @@ def test_kept_figures_are_quoted():
         assert figure.replace("+", "") in ppo, f"{figure} is not on docs/ppo.md"
         if " - " in name:
             assert figure.replace("+", "") in readme, f"{figure} is not in the README's results table"
+
+
+@pytest.mark.parametrize("folder, expected", [
+    ("four_rooms_paper_5000_A", "-0.063 [-0.118, -0.009]"),  # Adam 0.01: A declines from 1000 to 5000 episodes
+    ("four_rooms_A_lr1e-3", "+0.043 [-0.031, +0.118]"),  # Adam 0.001: it does not
+])
+def test_kept_long_run_of_actions_only(folder, expected):
+    """A after 5000 episodes minus A after 1000 (episodes 4900-5000 against 900-1000), paired by seed over the 15
+    seeds of the kept run, as docs/experiments/gridworld.md quotes it."""
+    import csv
+    import gzip
+    import os
+    from collections import defaultdict
+
+    from torchrl_options.experiments import mean_interval
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    returns = defaultdict(dict)
+    with gzip.open(os.path.join(root, "results", folder, "results.csv.gz"), "rt") as f:
+        for row in csv.DictReader(f):
+            if row["condition"] == "A":
+                returns[int(row["seed"])][int(row["episode"])] = float(row["return"])
+    assert len(returns) == 15 and all(len(r) >= 5000 for r in returns.values())
+
+    def window(r, start):
+        return sum(r[e] for e in range(start, start + 100)) / 100
+
+    diff = mean_interval([window(r, 4900) - window(r, 900) for r in returns.values()])
+    assert "%+.3f [%+.3f, %+.3f]" % diff == expected
+    with open(os.path.join(root, "docs", "experiments", "gridworld.md")) as f:
+        assert expected in f.read()

@@ -146,8 +146,9 @@ def test_time_claims_agree():
         (RECIPES / "config" / "scale" / "default.yaml").read_text().splitlines()[0],
         next(line for line in (RECIPES / "four_rooms.py").read_text().splitlines() if "# default scale" in line),
     ]
-    minutes = {re.search(r"(\d+) min", line).group(1) for line in claims}
-    assert minutes == {"3"}, claims
+    claims.append(next(line for line in (RECIPES.parent / "README.md").read_text().splitlines() if "minutes on 2 free" in line))
+    minutes = {re.search(r"([\d.]+) min", line).group(1) for line in claims}
+    assert minutes == {"5.5"}, claims
 
 
 def test_three_rooms_recipe(tmp_path):

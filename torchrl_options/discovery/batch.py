@@ -15,6 +15,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import ReplayBuffer
 
 from torchrl_options.discovery.settings import DiscoverySettings
+from torchrl_options.discovery.streaming import as_replay_buffer, trajectory_stream, TrajectoryStream
 from torchrl_options.discovery.validation import (
     check_meta_control_module,
     check_options_module,
@@ -146,17 +147,19 @@ class DiscoveryBatch:
     """The checked demonstrations of one discovery run, on the training device.
 
     Attributes:
-        data (TensorDictBase): ``[B, T]`` trajectories with their mask at :data:`MASK_KEY` (a replay buffer's first
-            sample when the trajectories come from one).
+        data (TensorDictBase): ``[B, T]`` trajectories with their mask at :data:`MASK_KEY` (with a replay buffer: its
+            evaluation set, :mod:`~torchrl_options.discovery.streaming`).
         num_actions (int or None): A, given or inferred for default discrete options; ``None`` otherwise.
-        buffer (ReplayBuffer or None): the replay buffer later batches are sampled from.
-        trajectory_key (NestedKey): the trajectory ids that split a buffer's samples.
+        buffer (ReplayBuffer or None): the replay buffer the trajectories are streamed from.
+        trajectory_key (NestedKey): the trajectory ids of a buffer's steps.
+        stream (TrajectoryStream or None): how each iteration reads the buffer's trajectories.
     """
 
     data: TensorDictBase
     num_actions: int | None = None
     buffer: ReplayBuffer | None = None
     trajectory_key: NestedKey = ("collector", "traj_ids")
+    stream: TrajectoryStream | None = None
 
     @property
     def mask(self) -> torch.Tensor:
@@ -173,10 +176,6 @@ class DiscoveryBatch:
     def with_data(self, data: TensorDictBase) -> DiscoveryBatch:
         """The same run on ``data``: rows of :attr:`data` (a training share), which stay checked."""
         return replace(self, data=data)
-
-    def sample(self) -> TensorDictBase:
-        """The next batch of the replay buffer, as a ``[B, T]`` trajectory batch on the device."""
-        return as_trajectory_batch(self.buffer.sample(), trajectory_key=self.trajectory_key).to(self.device)
 
 
 def discovery_batch(
@@ -215,13 +214,18 @@ def discovery_batch(
     """
     obs_keys, action_key = settings.obs_key_list, settings.action_key
     buffer = trajectories if isinstance(trajectories, ReplayBuffer) else None
+    num_actions = settings.num_actions
+    stream = None
+    if buffer is None and settings.distributed:  # each process streams its shard of the trajectories in memory
+        buffer = as_replay_buffer(as_trajectory_batch(trajectories))
     if buffer is not None:
-        data = as_trajectory_batch(buffer.sample(), trajectory_key=settings.trajectory_key)
+        stream, data = trajectory_stream(buffer, settings)  # checked as it is read
+        if infer_num_actions:
+            num_actions = stream.num_actions
     else:
         data = as_trajectory_batch(trajectories)
-    num_actions = settings.num_actions
-    check_step_data(data, obs_keys=obs_keys, action_key=action_key, action_space=settings.action_space,
-                    num_actions=num_actions)  # fmt: skip
+        check_step_data(data, obs_keys=obs_keys, action_key=action_key, action_space=settings.action_space,
+                        num_actions=num_actions)  # fmt: skip
     if options is not None:
         check_options_module(options, data, settings.num_options, num_actions=num_actions,
                              action_space=settings.action_space)  # fmt: skip
@@ -234,4 +238,5 @@ def discovery_batch(
     if infer_num_actions and settings.action_space == "categorical" and num_actions is None:
         num_actions = int(data.get(action_key)[data.get(MASK_KEY)].max()) + 1
         logger.info("num_actions not given: using max(action) + 1 = %d", num_actions)
-    return DiscoveryBatch(data, num_actions=num_actions, buffer=buffer, trajectory_key=settings.trajectory_key)
+    return DiscoveryBatch(data, num_actions=num_actions, buffer=buffer, trajectory_key=settings.trajectory_key,
+                          stream=stream)  # fmt: skip

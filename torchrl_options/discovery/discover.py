@@ -50,7 +50,7 @@ def discover(
     """
     networks = Networks() if networks is None else networks
     settings = resolve_settings(settings, networks)
-    check_networks(settings, networks, from_buffer=isinstance(trajectories, ReplayBuffer))
+    check_networks(settings, networks, from_buffer=isinstance(trajectories, ReplayBuffer) or settings.distributed)
     with seeded(settings.seed) as generator:
         batch = discovery_batch(trajectories, settings, options=networks.options, meta_control=networks.meta_control,
                                 infer_num_actions=networks.options is None)  # fmt: skip
@@ -95,6 +95,9 @@ def discover_options(
     split_merge_iterations: int = 300,
     options_factory: Callable[..., TensorDictModuleBase] | None = None,
     meta_control_factory: Callable[..., TensorDictModuleBase] | None = None,
+    chunk_trajectories: int | None = None,
+    eval_trajectories: int = 64,
+    distributed: bool = False,
 ) -> TensorDictModuleBase | DiscoveryResult:
     """Discovers ``num_options`` options from demonstration trajectories with DDO.
 
@@ -128,8 +131,15 @@ def discover_options(
 
     Args:
         trajectories: a ``[B, T]`` tensordict with ``("collector", "mask")`` (missing: all valid), one ``[T]``
-            trajectory, a list of ``[T_i]`` trajectories, or a TorchRL replay buffer whose ``sample()`` returns
-            flat slices of trajectories (e.g. with a ``SliceSampler``), split by :func:`~torchrl_options.as_trajectory_batch`.
+            trajectory, a list of ``[T_i]`` trajectories, or a TorchRL replay buffer over a ``TensorStorage``
+            (``LazyMemmapStorage`` on disk: :func:`~torchrl_options.data.demonstration_buffer`) holding whole
+            trajectories, which is *streamed*: each iteration reads its trajectories (whole ones, never a window:
+            the buffer's sampler is not used), so that memory is bounded by ``batch_size`` (or
+            ``chunk_trajectories``) trajectories, not the data set. The buffer holds steps with their trajectory
+            ids at ``trajectory_key`` (what a collector with ``replay_buffer=`` and ``trajs_per_batch`` writes, and
+            :func:`~torchrl_options.data.write_demonstrations`) or ``[T]`` trajectories with their mask; see
+            :mod:`~torchrl_options.discovery.streaming` for what is read when, and which likelihood the stopping
+            rule and the choice among starts read then (the evaluation set's, with minibatches).
         num_options (int): K.
 
     Keyword Args:
@@ -205,7 +215,19 @@ def discover_options(
             when fresh modules can be drawn and ``num_iterations >= n * restart_iterations``, else 1, with n
             :data:`~torchrl_options.discovery.AUTO_RESTARTS` (6) for ``init="auto"`` and :data:`~torchrl_options.discovery.DEFAULT_RESTARTS` (4) otherwise.
         restart_iterations (int): the iterations given to each start when ``restarts > 1``. Defaults to 40.
-        batch_size (int, optional): trajectories per minibatch; ``None`` uses all (or the buffer's batch size).
+        batch_size (int, optional): trajectories per minibatch; ``None`` uses all of them every iteration.
+        chunk_trajectories (int, optional): streamed only: trajectories per E-step when an iteration reads more
+            (the full batch of a large buffer); the chunks' gradients are summed before the step, so an iteration
+            is the full-batch one with the memory of a chunk. Needs ``m_steps=1`` when it cuts an iteration's
+            trajectories. ``None`` (default): all at once.
+        eval_trajectories (int): streamed with minibatches: the size of the fixed evaluation set whose
+            log-likelihood the stopping rule, the choice among starts and ``keep_best`` read (also the sample the
+            data checks, the default modules and the segment starts are taken from). Defaults to 64.
+        distributed (bool): data-parallel over the initialised ``torch.distributed`` process group (``torchrun``;
+            gloo on CPU, NCCL on GPU): each process streams its shard (trajectories ``rank, rank + world_size,
+            ...``) and the gradients are all-reduced (:mod:`~torchrl_options.discovery.distributed`); every process
+            returns the same modules. ``batch_size`` is then the global minibatch. Tensordicts given with it are
+            streamed in place. Defaults to ``False``.
         optimizer: an optimizer instance over the modules' parameters, or a factory called as
             ``optimizer(params, lr=lr)``. Defaults to Adam (``fused=True`` on CPU and CUDA, else ``foreach=True``).
         lr (float): learning rate for the default or factory-made optimizer. Defaults to 0.03.
@@ -263,6 +285,7 @@ def discover_options(
         restarts=restarts, restart_iterations=restart_iterations, batch_size=batch_size, lr=lr, device=device,
         seed=seed, progress=progress, trajectory_key=trajectory_key, log_every=log_every, desc=desc,
         split_merge=split_merge, split_merge_iterations=split_merge_iterations,
+        chunk_trajectories=chunk_trajectories, eval_trajectories=eval_trajectories, distributed=distributed,
     )  # fmt: skip
     result = discover(trajectories, settings, networks)
     return result if return_info else result.options

@@ -58,6 +58,23 @@ def converged_at(values: Sequence[float], tol: float, patience: int) -> int | No
 EStep = Callable[[TensorDictBase], "tuple[dict, Callable[[], torch.Tensor]]"]
 
 
+def record_floats(out: dict) -> dict[str, float]:
+    """A record's values as Python floats, read from the device in one synchronisation (the values are stacked in
+    float64, which holds every float32 exactly: the floats are those of ``float(value)``).
+
+    Examples:
+        >>> record_floats({"a": torch.tensor(0.1), "b": torch.tensor(2, dtype=torch.int64), "c": 3.5})
+        {'a': 0.10000000149011612, 'b': 2.0, 'c': 3.5}
+    """
+    items = list(out.items())  # a dict or a TensorDict (of 0-d tensors)
+    tensors = [(k, v) for k, v in items if isinstance(v, torch.Tensor)]
+    values = {k: float(v) for k, v in items if not isinstance(v, torch.Tensor)}
+    if tensors:
+        stacked = torch.stack([v.detach().reshape(()).to(torch.float64) for _, v in tensors]).tolist()
+        values.update(zip([k for k, _ in tensors], stacked))
+    return {k: values[k] for k, _ in items}
+
+
 def fit_ddo(
     loss_module: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
@@ -151,11 +168,9 @@ def fit_ddo(
             out = loss_module(batch)
         else:
             out, objective = e_step(batch)
-        if keep_best:
-            value = float(out["log_likelihood_per_step"])
-            if value > best_value:  # the parameters this record was computed at, before this iteration's steps
-                best_value = value
-                best_state = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
+        snapshot = None
+        if keep_best:  # the parameters this record is computed at, before this iteration's steps (a device copy)
+            snapshot = {k: v.detach().clone() for k, v in loss_module.state_dict().items()}
         if e_step is None:
             optimizer.zero_grad()
             out["loss_ddo"].backward()
@@ -167,7 +182,9 @@ def fit_ddo(
                 optimizer.step()
         if scheduler is not None:
             scheduler.step()
-        record = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in out.items()}
+        record = record_floats(out)  # the iteration's one host synchronisation, after its steps are queued
+        if snapshot is not None and record["log_likelihood_per_step"] > best_value:
+            best_value, best_state = record["log_likelihood_per_step"], snapshot
         records.append(record)
         if bar is not None:
             postfix = {"ll_step": f"{record['log_likelihood_per_step']:.4f}"}

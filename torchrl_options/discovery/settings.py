@@ -11,7 +11,14 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from torchrl_options.checks import check_choice, check_int, check_nested_key, check_number, check_positive_number
+from torchrl_options.checks import (
+    check_bool,
+    check_choice,
+    check_int,
+    check_nested_key,
+    check_number,
+    check_positive_number,
+)
 
 __all__ = [
     "ACTION_SPACES",
@@ -123,7 +130,9 @@ class DiscoverySettings:
     ``discover_options(data, K, **kwargs)`` builds one and hands it to the stages of
     :mod:`~torchrl_options.discovery.stages`. Keys may come as YAML lists: ``action_key`` and ``trajectory_key``
     are turned into tuples, ``obs_keys`` into a list of keys (:func:`obs_key_list`). ``meta_control`` is
-    ``"uniform"`` or ``"learned"``; a meta-control module is given with the modules instead.
+    ``"uniform"`` or ``"learned"``; a meta-control module is given with the modules instead. ``chunk_trajectories``,
+    ``eval_trajectories`` and ``distributed`` concern trajectories streamed from a replay buffer only
+    (:mod:`~torchrl_options.discovery.streaming`).
 
     With Hydra, register it as a structured config and build the settings from a YAML section::
 
@@ -169,6 +178,9 @@ class DiscoverySettings:
     desc: str = "DDO"
     split_merge: int = 0
     split_merge_iterations: int = 300
+    chunk_trajectories: int | None = None
+    eval_trajectories: int = 64
+    distributed: bool = False
 
     def __post_init__(self) -> None:
         for name in ("action_key", "trajectory_key"):
@@ -192,6 +204,9 @@ class DiscoverySettings:
             raise ValueError(f"meta_control must be 'uniform', 'learned' or a module, got {self.meta_control!r}.")
         check_int(self.batch_size, "batch_size", minimum=1, allow_none=True)
         check_int(self.log_every, "log_every", minimum=0)
+        check_int(self.chunk_trajectories, "chunk_trajectories", minimum=1, allow_none=True)
+        check_int(self.eval_trajectories, "eval_trajectories", minimum=1)
+        check_bool(self.distributed, "distributed")
 
     @property
     def stopping_patience(self) -> int:

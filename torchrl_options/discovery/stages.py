@@ -45,6 +45,7 @@ from torchrl_options.discovery.initialization import pretrain_on_clusters, pretr
 from torchrl_options.discovery.networks import Networks
 from torchrl_options.discovery.settings import DiscoverySettings
 from torchrl_options.discovery.split_merge import check_split_merge_options, split_merge
+from torchrl_options.discovery.stream_fit import fit_stream
 from torchrl_options.discovery.tabulated import TabulatedDDO
 from torchrl_options.discovery.width import AUTO_WIDTHS, held_out_log_likelihood, select_width
 from torchrl_options.objectives import DDOLoss
@@ -215,19 +216,14 @@ def make_start(
 
 
 class _Batches:
-    """The batch of each iteration: a minibatch of the tabulated trajectories, or the replay buffer's next sample
-    (the door's sample first)."""
+    """The batch of each iteration: a minibatch of the tabulated trajectories (streamed trajectories are read by
+    :func:`~torchrl_options.discovery.stream_fit.fit_stream` itself)."""
 
     def __init__(self, batch: DiscoveryBatch, settings: DiscoverySettings, generator: torch.Generator) -> None:
         self.batch, self.batch_size, self.generator = batch, settings.batch_size, generator
-        self.unused_sample = batch.buffer is not None  # the sample the door drew, for the first iteration
 
     def next(self, start: Start) -> TabulatedDDO:
         batch = self.batch
-        if batch.buffer is not None:
-            data = batch.data if self.unused_sample else batch.sample()
-            self.unused_sample = False
-            return TabulatedDDO(start.loss_module, data)
         rows = minibatch_rows(batch.num_trajectories, self.batch_size, self.generator)
         return start.table if rows is None else start.table.subset(rows.to(batch.device))
 
@@ -235,9 +231,18 @@ class _Batches:
 def train_start(start: Start, settings: DiscoverySettings, batches: _Batches, num_iterations: int, desc: str,
                 final: bool) -> list[dict]:  # fmt: skip
     """Trains a start for at most ``num_iterations`` iterations (:func:`~torchrl_options.discovery.fit.fit_ddo`
-    with the tabulated E-step). With the stopping rule on the full batch, the ``final`` training ends at its best
-    recorded iteration (``keep_best``)."""
-    keep_best = settings.tol is not None and batches.batch.buffer is None and settings.batch_size is None
+    with the tabulated E-step, or :func:`~torchrl_options.discovery.stream_fit.fit_stream` on streamed
+    trajectories). With the stopping rule on the full batch (or, streamed, on the evaluation set), the ``final``
+    training ends at its best recorded iteration (``keep_best``)."""
+    batch = batches.batch
+    if batch.stream is not None:
+        return fit_stream(
+            start.loss_module, start.optimizer, batch.stream, batches.generator, num_iterations, m_steps=settings.m_steps,
+            tol=settings.tol, patience=settings.patience, scheduler=start.scheduler, desc=desc,
+            progress=settings.progress, log_every=settings.log_every, keep_best=settings.tol is not None and final,
+            probe=batch.data,
+        )  # fmt: skip
+    keep_best = settings.tol is not None and batch.buffer is None and settings.batch_size is None
     return fit_ddo(
         start.loss_module, start.optimizer, lambda it: batches.next(start), num_iterations, e_step=TabulatedDDO.e_step,
         m_steps=settings.m_steps, tol=settings.tol, patience=settings.patience, scheduler=start.scheduler, desc=desc,
@@ -318,8 +323,9 @@ def fit_starts(
 
     def make(r: int) -> Start:
         nonlocal table
+        # streamed trajectories: segment starts on the evaluation set (the door's sample)
         strategy = start_strategy(settings.init, r, given_options=networks.options is not None,
-                                  from_buffer=batch.buffer is not None)  # fmt: skip
+                                  from_buffer=batch.buffer is not None and batch.stream is None)  # fmt: skip
         start = make_start(batch, settings, networks, strategy, generator, table, first=r == 0)
         if r == 0 and start.table is not None:
             logger.info("DDO: %d valid steps, %d distinct states, %d distinct state-action pairs",

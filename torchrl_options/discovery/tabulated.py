@@ -70,14 +70,40 @@ def unique_rows(columns: Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Te
             c = c.to(torch.int64)
         parts.append(c)
     mat = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
-    if mat.shape[1] == 1:
-        _, inverse = torch.unique(mat.squeeze(1), return_inverse=True)
-    else:
-        _, inverse = torch.unique(mat, dim=0, return_inverse=True)
+    inverse = _lexicographic_ranks(mat)
     num = int(inverse.max()) + 1 if n else 0
     first = torch.full((num,), n, dtype=torch.long, device=mat.device)
     first.scatter_reduce_(0, inverse, torch.arange(n, device=mat.device), "amin")
     return inverse, first
+
+
+def _lexicographic_ranks(mat: torch.Tensor) -> torch.Tensor:
+    """The rank of each row of an int64 ``[N, D]`` matrix among its distinct rows in lexicographic order: the
+    ``inverse`` of ``torch.unique(mat, dim=0, return_inverse=True)``, computed with one-dimensional ``unique`` calls
+    (columns ranked one at a time and folded into the running rank, which stays below ``N``), many times faster than
+    ``unique(dim=0)`` on CPU.
+
+    Examples:
+        >>> import torch
+        >>> mat = torch.tensor([[2, 1], [0, 5], [2, 1], [0, -3]])
+        >>> _lexicographic_ranks(mat).tolist() == torch.unique(mat, dim=0, return_inverse=True)[1].tolist()
+        True
+    """
+    _, rank = torch.unique(mat[:, 0], return_inverse=True)
+    for d in range(1, mat.shape[1]):
+        _, column = torch.unique(mat[:, d], return_inverse=True)
+        # both ranks are below N <= 2**31, so the pair's key fits an int64 and orders as (rank, column) does
+        key = rank * (int(column.max()) + 1 if column.numel() else 1) + column
+        _, rank = torch.unique(key, return_inverse=True)
+    return rank
+
+
+def _changed(params: Sequence[torch.Tensor], snapshot: Sequence[torch.Tensor]) -> bool:
+    """Whether any parameter differs from its snapshot (as ``not torch.equal`` would say), in one host
+    synchronisation rather than one per parameter."""
+    if not params:
+        return False
+    return bool(torch.stack([torch.ne(p.detach(), s).any() for p, s in zip(params, snapshot)]).any())
 
 
 def _valid_rows(td: TensorDictBase, keys: Sequence[NestedKey], valid: torch.Tensor) -> TensorDictBase:
@@ -462,7 +488,7 @@ class TabulatedDDO:
 
         def objective() -> torch.Tensor:
             forward = cached.pop() if cached else None
-            if forward is None or not all(torch.equal(p, s) for p, s in zip(params, snapshot)):
+            if forward is None or _changed(params, snapshot):
                 forward = self._forward()
             pi, term_logits, meta_logits = forward
             # zero counts times a -inf log-probability (an option that cannot take the action) contribute nothing

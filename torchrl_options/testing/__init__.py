@@ -1,5 +1,5 @@
 """Planted structures with known ground truth, for tests, benchmarks and sanity checks of discovery."""
-from torchrl_options.testing.planted import label_accuracy, planted_corridor_demonstrations
+from torchrl_options.testing.planted import label_accuracy, planted_corridor_demonstrations, write_planted_corridor
 from torchrl_options.testing.planted_hierarchy import (
     planted_two_level_demonstrations,
     planted_two_level_log_probabilities,
@@ -24,4 +24,5 @@ __all__ = [
     "PLANTED_SUITE",
     "PlantedProblem",
     "posterior_accuracy",
+    "write_planted_corridor",
 ]

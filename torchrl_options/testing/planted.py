@@ -8,7 +8,7 @@ from tensordict import TensorDict
 
 from torchrl_options.checks import check_int, check_number, check_same_device, check_tensor
 
-__all__ = ["planted_corridor_demonstrations", "label_accuracy"]
+__all__ = ["planted_corridor_demonstrations", "label_accuracy", "write_planted_corridor"]
 
 
 def planted_corridor_demonstrations(
@@ -90,6 +90,57 @@ def planted_corridor_demonstrations(
         },
         batch_size=[B, T],
     )
+
+
+def write_planted_corridor(
+    buffer,
+    num_trajectories: int,
+    length: int,
+    *,
+    chunk_trajectories: int = 1024,
+    seed: int = 0,
+    truth: bool = False,
+    **kwargs,
+) -> int:
+    """Writes planted corridor demonstrations into a demonstration buffer, ``chunk_trajectories`` at a time, so
+    that the generator never holds more than one chunk (10M steps fit on disk, not in memory).
+
+    Chunk ``i`` is ``planted_corridor_demonstrations(n_i, length, seed=seed + i, **kwargs)``.
+
+    Args:
+        buffer (ReplayBuffer): a :func:`~torchrl_options.data.demonstration_buffer` with room for
+            ``num_trajectories * length`` steps.
+        num_trajectories (int): B.
+        length (int): T.
+
+    Keyword Args:
+        chunk_trajectories (int): trajectories generated and written at a time. Defaults to 1024.
+        seed (int): the first chunk's seed.
+        truth (bool): also write ``"true_option"`` and ``"true_switch"``. Defaults to ``False``.
+        **kwargs: :func:`planted_corridor_demonstrations`'s keyword arguments.
+
+    Returns:
+        The steps written.
+
+    Examples:
+        >>> from torchrl_options.data import demonstration_buffer
+        >>> write_planted_corridor(demonstration_buffer(5000), 40, 100, chunk_trajectories=16)
+        4000
+    """
+    from torchrl_options.data import write_demonstrations
+
+    check_int(num_trajectories, "num_trajectories", minimum=1)
+    check_int(length, "length", minimum=1)
+    check_int(chunk_trajectories, "chunk_trajectories", minimum=1)
+    check_int(seed, "seed")
+    written = 0
+    for i, first in enumerate(range(0, num_trajectories, chunk_trajectories)):
+        n = min(chunk_trajectories, num_trajectories - first)
+        data = planted_corridor_demonstrations(n, length, seed=seed + i, **kwargs)
+        if not truth:
+            data = data.exclude("true_option", "true_switch")
+        written += write_demonstrations(buffer, data)
+    return written
 
 
 def check_labels(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None, owner: str) -> torch.Tensor:
