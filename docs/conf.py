@@ -58,10 +58,12 @@ API_MODULES = [
     "torchrl_options.data",
     "torchrl_options.agents",
     "torchrl_options.envs",
+    "torchrl_options.envs.minigrid",
     "torchrl_options.segmentation",
     "torchrl_options.testing",
     "torchrl_options.experiments",
     "torchrl_options.experiments.atari",
+    "torchrl_options.experiments.minigrid",
     "torchrl_options.checkpoints",
     "torchrl_options.checks",
 ]

@@ -8,7 +8,7 @@ from tensordict import TensorDict
 from _bad_inputs import check, ids, OK
 from _tiny_envs import Corridor
 from torchrl_options import DDOLoss, GaussianOptionsMLP, MetaControlMLP, OptionsMLP, UniformMetaControl
-from torchrl_options.modules import OneHotByteOptions
+from torchrl_options.modules import GridConvOptions, OneHotByteOptions
 from torchrl_options.objectives import guard_decision_level, is_step_level_option_data, option_log_probs
 from torchrl_options.transforms import DecisionCounter, OptionExecutor
 
@@ -21,6 +21,12 @@ def obs(n=4, d=2, device="cpu"):
 
 CASES = [
     # ---- modules
+    ("GridConvOptions", "num_actions a float", lambda: GridConvOptions(7.0, 2), TypeError, "num_actions must be an int"),
+    ("GridConvOptions", "num_options 0", lambda: GridConvOptions(7, 0), ValueError, "num_options must be an int >= 1"),
+    ("GridConvOptions", "an unknown architecture", lambda: GridConvOptions(7, 2, architecture="tied"), ValueError,
+     "architecture must be one of ('separate', 'shared')"),
+    ("GridConvOptions", "an input of another width", lambda: GridConvOptions(7, 2)(obs(d=10)), ValueError,
+     "GridConvOptions expects 984 features (20 x 7 x 7 grid + 4) in ['observation'], got 10"),
     ("OptionsMLP", "in_features a float", lambda: OptionsMLP(2.0, 3, 2), TypeError, "in_features must be an int"),
     ("OptionsMLP", "num_options 0", lambda: OptionsMLP(2, 3, 0), ValueError, "num_options must be a positive int"),
     ("OptionsMLP", "two outputs on one entry", lambda: OptionsMLP(2, 3, 2, out_keys=["x", "x"]), ValueError,

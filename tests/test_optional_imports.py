@@ -1,15 +1,16 @@
 """``import torchrl_options`` needs the core dependencies only.
 
 The optional parts (ale-py for Atari, Ray for sweeps, Hydra/omegaconf for the recipes, matplotlib for plots,
-h5py for HDF5 trajectory files) are imported inside the functions that use them. A subprocess hides them, as if
-they were not installed, and imports every module of the package and every public name of every subpackage.
+h5py for HDF5 trajectory files, minigrid for the MiniGrid levels) are imported inside the functions that use them.
+A subprocess hides them, as if they were not installed, and imports every module of the package and every public
+name of every subpackage.
 """
 import os
 import subprocess
 import sys
 import textwrap
 
-OPTIONAL = ("ale_py", "ray", "hydra", "omegaconf", "matplotlib", "h5py")
+OPTIONAL = ("ale_py", "ray", "hydra", "omegaconf", "matplotlib", "h5py", "minigrid")
 
 # A module set to None in sys.modules is one Python treats as absent: ``import x`` raises ModuleNotFoundError and
 # ``importlib.util.find_spec("x")`` returns None, as libraries probing for optional packages expect. A meta path
