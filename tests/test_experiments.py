@@ -174,6 +174,32 @@ def test_sweep_runs_each_cell_once_and_resumes(tmp_path, backend):
     assert run_sweep(_constant_cell, cells, log, backend=backend) == []
 
 
+def _torchrl_level_cell(cell):
+    """A cell that returns the level of TorchRL's logger in the process that runs it."""
+    import logging
+
+    from torchrl_options.experiments.sweep import CellResult
+
+    return CellResult(returns=[float(logging.getLogger("torchrl").level)], frames=[1])
+
+
+def test_local_workers_take_the_drivers_torchrl_log_level(tmp_path):
+    """A quiet recipe silences TorchRL's console lines in the driver; the pool's workers get the same level."""
+    import logging
+
+    from torchrl_options.experiments.sweep import Cell, run_sweep
+
+    logger = logging.getLogger("torchrl")
+    before = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        log = ResultsLog(tmp_path / "results.csv")
+        run_sweep(_torchrl_level_cell, [Cell("toy", "A", 0)], log, backend="local", num_workers=1)
+    finally:
+        logger.setLevel(before)
+    assert log.returns("toy", "A") == {0: [float(logging.WARNING)]}
+
+
 def test_sweep_on_ray_local_cluster(tmp_path):
     pytest.importorskip("ray")
     from torchrl_options.experiments.sweep import _constant_cell, Cell, run_sweep

@@ -75,11 +75,14 @@ def _worker_sigint(signum, frame) -> None:
         raise KeyboardInterrupt
 
 
-def _init_worker() -> None:
+def _init_worker(torchrl_level: int = logging.NOTSET) -> None:
     """Pool workers: SIGINT (Ctrl-C reaches the whole process group, and the driver forwards SIGTERM as SIGINT)
     stops the running cell (its last checkpoint stays) and is ignored between cells, so that no worker prints a
-    traceback; the driver reports the interruption once."""
+    traceback; the driver reports the interruption once. TorchRL's logger gets the driver's level (a quiet recipe
+    keeps TorchRL's own console lines out of the workers too)."""
     signal.signal(signal.SIGINT, _worker_sigint)
+    if torchrl_level != logging.NOTSET:
+        logging.getLogger("torchrl").setLevel(torchrl_level)
 
 
 def _run_one(fn: Callable[[Cell], CellResult], cell: Cell, threads: int | None) -> tuple[Cell, CellResult]:
@@ -178,7 +181,10 @@ def run_sweep(
             record(cell, fn(cell))
     elif backend == "local":
         ctx = multiprocessing.get_context("spawn")
-        pool = cf.ProcessPoolExecutor(max_workers=num_workers, mp_context=ctx, initializer=_init_worker)
+        pool = cf.ProcessPoolExecutor(
+            max_workers=num_workers, mp_context=ctx, initializer=_init_worker,
+            initargs=(logging.getLogger("torchrl").level,),
+        )
         try:
             futures = [pool.submit(_run_one, fn, cell, threads_per_worker) for cell in todo]
             for future in cf.as_completed(futures):
