@@ -4,7 +4,7 @@ Conditions: A (DQN with actions only), H1u / H1s (DQN over actions and options d
 learned meta-control). Writes results.csv, summary.md, curves.png, pictures/ (option pictures and videos) and the
 log (four_rooms.log) to ``out_dir``, nothing elsewhere, and prints the summary table.
 
-    python recipes/four_rooms.py                 # default scale: about 5.5 minutes on 2 free CPU cores, ~4 MB
+    python recipes/four_rooms.py                 # default scale: about 4.5 minutes on 2 free CPU cores, ~4 MB
     python recipes/four_rooms.py scale=paper     # 15 seeds x 5000 episodes, supervised and exploration
     python recipes/four_rooms.py backend=local num_workers=8 logger.backend=tensorboard
 """
