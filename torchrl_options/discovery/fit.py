@@ -44,14 +44,28 @@ def converged_at(values: Sequence[float], tol: float, patience: int) -> int | No
         True
     """
     check_stopping_rule(tol, patience)
-    best = []
-    running = float("-inf")
+    best: list[float] = []
     for i, x in enumerate(values):
-        if x == x and x > running:
-            running = float(x)
-        best.append(running)
-        if i >= patience and not best[i] - best[i - patience] >= tol:
+        if stopping_gain(best, x, tol, patience) is not None:
             return i
+    return None
+
+
+def stopping_gain(best: list[float], value: float, tol: float, patience: int) -> float | None:
+    """One iteration of the stopping rule of :func:`converged_at`: appends the best value so far to ``best`` (NaN
+    counts as no improvement) and returns the gain over the last ``patience`` iterations when it is below ``tol``
+    (the rule says stop), ``None`` otherwise.
+
+    Examples:
+        >>> best = []
+        >>> [stopping_gain(best, x, 1e-3, 1) for x in (-2.0, -1.0, float("nan"))]
+        [None, None, 0.0]
+    """
+    previous = best[-1] if best else float("-inf")
+    best.append(float(value) if value == value and value > previous else previous)
+    i = len(best) - 1
+    if i >= patience and not best[i] - best[i - patience] >= tol:
+        return best[i] - best[i - patience]
     return None
 
 
@@ -195,12 +209,11 @@ def fit_ddo(
             logger.info("%s iteration %d: %s", desc, it, {k: round(v, 4) for k, v in record.items()})
         if tol is not None:
             x = record["log_likelihood_per_step"]
-            prev = best[-1] if best else float("-inf")
-            best.append(x if x == x and x > prev else prev)
-            if it >= patience and not best[it] - best[it - patience] >= tol:
+            gain = stopping_gain(best, x, tol, patience)
+            if gain is not None:
                 logger.info(
                     "%s converged at iteration %d: log-likelihood per step %.4f, gained %.2e < tol=%g over the last %d",
-                    desc, it, x, best[it] - best[it - patience], tol, patience,
+                    desc, it, x, gain, tol, patience,
                 )
                 break
     if bar is not None:

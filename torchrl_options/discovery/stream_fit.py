@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from torchrl_options.discovery.fit import record_floats
+from torchrl_options.discovery.fit import record_floats, stopping_gain
 from torchrl_options.discovery.streaming import TrajectoryStream
 from torchrl_options.discovery.tabulated import TabulatedDDO
 
@@ -179,12 +179,11 @@ def fit_stream(
         if lead and log_every and (it % log_every == 0 or it == num_iterations - 1):
             logger.info("%s iteration %d: %s", desc, it, {k: round(v, 4) for k, v in record.items()})
         if tol is not None:
-            prev = best[-1] if best else float("-inf")
-            best.append(value if value == value and value > prev else prev)
-            if it >= patience and not best[it] - best[it - patience] >= tol:
+            gain = stopping_gain(best, value, tol, patience)
+            if gain is not None:
                 if lead:
                     logger.info("%s converged at iteration %d: log-likelihood per step %.4f, gained %.2e < tol=%g over "
-                                "the last %d", desc, it, value, best[it] - best[it - patience], tol, patience)  # fmt: skip
+                                "the last %d", desc, it, value, gain, tol, patience)  # fmt: skip
                 break
     if bar is not None:
         bar.close()
