@@ -88,3 +88,36 @@ def test_ddo_starts_one_is_the_kept_protocol_and_defaults_a_factory():
                               tol=None, seed=0, progress=False, return_info=True)  # fmt: skip
     assert len(result.restart_log_likelihoods) == 6  # the default segment starts
     assert AtariConfig.from_dict({"ddo_starts": "defaults"}).ddo_starts == "defaults"
+
+
+def test_ddo_usage_floor_reaches_discovery_and_is_checked_when_read(monkeypatch, tmp_path):
+    """``ddo_usage_floor`` (default ``None``, every kept run) is handed to ``discover_options(usage_floor=...)``
+    by phase 2, and a value outside ``(0, 1)`` is refused when the settings are read, naming the setting."""
+    import pytest
+    import torch
+    from tensordict import TensorDict
+
+    import torchrl_options.discovery as discovery
+    from torchrl_options.experiments.atari import pipeline
+    from torchrl_options.experiments.atari.config import AtariConfig
+
+    assert AtariConfig().ddo_usage_floor is None
+    with pytest.raises(ValueError, match=r"ddo_usage_floor must be a share of the uniform usage 1/K in \(0, 1\), got 1.5"):
+        AtariConfig.from_dict({"ddo_usage_floor": 1.5})
+    seen = {}
+
+    def fake_discover(demos, **kwargs):
+        seen.update(kwargs)
+        raise RuntimeError("stop here")
+
+    g = torch.Generator().manual_seed(0)
+    demo = TensorDict({"observation": torch.rand(5, 6, generator=g), "action": torch.zeros(5, dtype=torch.long),
+                       "next": {"observation": torch.rand(5, 6, generator=g), "done": torch.zeros(5, 1, dtype=torch.bool),
+                                "terminated": torch.zeros(5, 1, dtype=torch.bool), "reward": torch.zeros(5, 1)}}, [5])  # fmt: skip
+    monkeypatch.setattr(discovery, "discover_options", fake_discover)
+    monkeypatch.setattr(pipeline, "_greedy_rollouts", lambda *args, **kwargs: [demo])
+    monkeypatch.setattr(pipeline, "_num_actions", lambda game, config: 3)
+    config = AtariConfig(options_num_cells=(4,), ddo_usage_floor=0.5, num_options=2)
+    with pytest.raises(RuntimeError, match="stop here"):
+        pipeline._phase2("Pong", config, 0, str(tmp_path), agent=None)
+    assert seen["usage_floor"] == 0.5

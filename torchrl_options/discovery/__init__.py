@@ -30,6 +30,7 @@ from torchrl_options.discovery.initialization import (
 )
 from torchrl_options.discovery.serialization import load_options, save_options
 from torchrl_options.discovery.tabulated import TabulatedDDO, unique_rows
+from torchrl_options.discovery.usage_floor import check_usage_floor, UsageFloor
 
 __all__ = [
     "as_trajectory_batch",
@@ -60,4 +61,6 @@ __all__ = [
     "save_options",
     "TabulatedDDO",
     "unique_rows",
+    "UsageFloor",
+    "check_usage_floor",
 ]

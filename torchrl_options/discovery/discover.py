@@ -98,6 +98,7 @@ def discover_options(
     chunk_trajectories: int | None = None,
     eval_trajectories: int = 64,
     distributed: bool = False,
+    usage_floor: float | None = None,
 ) -> TensorDictModuleBase | DiscoveryResult:
     """Discovers ``num_options`` options from demonstration trajectories with DDO.
 
@@ -256,6 +257,13 @@ def discover_options(
             to 0 (off). On the planted ``landmarks-8`` problem, 8 moves raise the share of correctly labelled
             steps from the main fit's local optimum (``docs/experiments/planted_suite.md``).
         split_merge_iterations (int): the most iterations of each move's re-fit. Defaults to 300.
+        usage_floor (float, optional): keep every option in use during the fit: each E-step's posterior is
+            projected onto "every option active on at least ``usage_floor / K`` of the steps" (posterior
+            regularisation, :mod:`~torchrl_options.discovery.usage_floor`), a share of the uniform usage in
+            ``(0, 1)``. Against the collapse to one option that maximum likelihood allows when one option can copy
+            a demonstrator. The history's ``log_likelihood_per_step`` is then the penalised objective (a lower
+            bound of the likelihood, equal to it when no floor binds); the result's ``option_usage`` is the
+            trained model's own. Needs trajectories as tensordicts. Defaults to ``None`` (off).
 
     Returns:
         The trained options module, or a :class:`~torchrl_options.discovery.DiscoveryResult` with ``return_info=True``.
@@ -286,6 +294,7 @@ def discover_options(
         seed=seed, progress=progress, trajectory_key=trajectory_key, log_every=log_every, desc=desc,
         split_merge=split_merge, split_merge_iterations=split_merge_iterations,
         chunk_trajectories=chunk_trajectories, eval_trajectories=eval_trajectories, distributed=distributed,
+        usage_floor=usage_floor,
     )  # fmt: skip
     result = discover(trajectories, settings, networks)
     return result if return_info else result.options

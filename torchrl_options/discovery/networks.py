@@ -207,12 +207,17 @@ def check_networks(settings: DiscoverySettings, networks: Networks, *, from_buff
     """Refuses what a run's settings ask of its networks and cannot have, before any data is read: factories that
     cannot serve, ``init_scale`` with given options, and the needs of ``split_merge`` (``num_options >= 2``,
     ``meta_control="uniform"``, per-option parameters, an optimizer factory, tensordicts rather than a replay
-    buffer) and of restarts (fresh modules, ``restart_iterations`` within ``num_iterations``)."""
+    buffer) and of ``usage_floor`` (tensordicts) and of restarts (fresh modules, ``restart_iterations`` within ``num_iterations``)."""
     meta = networks.meta_control if networks.meta_control is not None else settings.meta_control
     check_factories(networks.options, networks.options_factory, meta, networks.meta_control_factory,
                     init_scale=settings.init_scale, num_cells=settings.num_cells)  # fmt: skip
     if settings.split_merge:
         _check_split_merge(settings, networks, from_buffer)
+    if settings.usage_floor is not None and from_buffer:
+        raise ValueError(
+            f"usage_floor={settings.usage_floor!r} projects the E-step of trajectories held in memory: give the "
+            "trajectories as tensordicts (not a replay buffer) and distributed=False."
+        )
     restarts = settings.restarts
     if restarts is not None and restarts > 1:
         if not isinstance(settings.restart_iterations, int) or not 1 <= settings.restart_iterations <= settings.num_iterations:

@@ -20,6 +20,8 @@ from torchrl_options.checks import (
     check_positive_number,
 )
 
+from torchrl_options.discovery.usage_floor import check_usage_floor
+
 __all__ = [
     "ACTION_SPACES",
     "AUTO_RESTARTS",
@@ -181,6 +183,7 @@ class DiscoverySettings:
     chunk_trajectories: int | None = None
     eval_trajectories: int = 64
     distributed: bool = False
+    usage_floor: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("action_key", "trajectory_key"):
@@ -207,6 +210,7 @@ class DiscoverySettings:
         check_int(self.chunk_trajectories, "chunk_trajectories", minimum=1, allow_none=True)
         check_int(self.eval_trajectories, "eval_trajectories", minimum=1)
         check_bool(self.distributed, "distributed")
+        check_usage_floor(self.usage_floor)
 
     @property
     def stopping_patience(self) -> int:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from functools import partial
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -47,6 +48,7 @@ from torchrl_options.discovery.settings import DiscoverySettings
 from torchrl_options.discovery.split_merge import check_split_merge_options, split_merge
 from torchrl_options.discovery.stream_fit import fit_stream
 from torchrl_options.discovery.tabulated import TabulatedDDO
+from torchrl_options.discovery.usage_floor import UsageFloor
 from torchrl_options.discovery.width import AUTO_WIDTHS, held_out_log_likelihood, select_width
 from torchrl_options.objectives import DDOLoss
 
@@ -125,6 +127,7 @@ class Start:
     optimizer: torch.optim.Optimizer
     scheduler: Any = None
     table: TabulatedDDO | None = None
+    usage_floor: UsageFloor | None = None
 
 
 @contextlib.contextmanager
@@ -212,7 +215,10 @@ def make_start(
     scheduler = networks.lr_scheduler(optimizer) if networks.lr_scheduler is not None else None
     if batch.buffer is None:
         table = TabulatedDDO(loss_module, batch.data) if table is None else table.for_loss(loss_module)
-    return Start(loss_module, optimizer, scheduler, table)
+    floor = None
+    if settings.usage_floor is not None:
+        floor = UsageFloor(settings.num_options, settings.usage_floor, device=device)
+    return Start(loss_module, optimizer, scheduler, table, floor)
 
 
 class _Batches:
@@ -243,8 +249,9 @@ def train_start(start: Start, settings: DiscoverySettings, batches: _Batches, nu
             probe=batch.data,
         )  # fmt: skip
     keep_best = settings.tol is not None and batch.buffer is None and settings.batch_size is None
+    e_step = TabulatedDDO.e_step if start.usage_floor is None else partial(TabulatedDDO.e_step, usage_floor=start.usage_floor)
     return fit_ddo(
-        start.loss_module, start.optimizer, lambda it: batches.next(start), num_iterations, e_step=TabulatedDDO.e_step,
+        start.loss_module, start.optimizer, lambda it: batches.next(start), num_iterations, e_step=e_step,
         m_steps=settings.m_steps, tol=settings.tol, patience=settings.patience, scheduler=start.scheduler, desc=desc,
         progress=settings.progress, log_every=settings.log_every, keep_best=keep_best and final,
     )  # fmt: skip

@@ -28,6 +28,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from torchrl_options.discovery.usage_floor import UsageFloor
 from torchrl_options.inference import forward_backward
 from torchrl_options.objectives.common import BatchChecks, ddo_diagnostics, prepare_trajectories, terminal_flags
 from torchrl_options.objectives.ddo import option_log_probs
@@ -412,8 +413,16 @@ class TabulatedDDO:
         params = list(self.options.parameters())
         return params + ([] if self.meta_control is None else list(self.meta_control.parameters()))
 
-    def e_step(self) -> tuple[dict[str, torch.Tensor], Callable[[], torch.Tensor]]:
+    def e_step(self, usage_floor: UsageFloor | None = None) -> tuple[dict[str, torch.Tensor], Callable[[], torch.Tensor]]:
         """Posterior of the batch under the current parameters.
+
+        Args:
+            usage_floor (UsageFloor, optional): project the posterior onto a floor on every option's usage
+                (:mod:`~torchrl_options.discovery.usage_floor`): the E-step runs with the floor's dual variables
+                added to the options' action log-probabilities, the record's ``log_likelihood_per_step`` (and
+                ``loss_ddo``) is the penalised objective ``log p(x) - KL(q* || p(z|x))`` per step (the likelihood
+                when no floor binds, a lower bound of it otherwise), and the dual takes one step from this
+                posterior's usage. ``None`` (default): the exact posterior.
 
         Returns:
             ``(record, objective)``: ``record`` holds :class:`~torchrl_options.DDOLoss`'s outputs (detached) for the
@@ -449,9 +458,14 @@ class TabulatedDDO:
             else:
                 log_eta = per_step(log_meta, self.meta_index)
             # the values were checked above (on the tables) and the mask when the batch was tabulated
+            if usage_floor is not None:
+                log_pi = usage_floor.biased(log_pi)
             fb = forward_backward(log_pi, log_term, log_cont, log_eta, self.mask, self.terminal, validate=False)
             n = self.num_steps
             ll = fb.log_likelihood.sum()
+            if usage_floor is not None:
+                ll = ll - usage_floor.penalty(fb.u)
+                usage_floor.update(fb.u.sum((0, 1)) / n)
             psi_next = per_step(torch.sigmoid(term_logits), self.next_index)
             diagnostics = ddo_diagnostics(fb.u, fb.v, psi_next, n)
             record = {"loss_ddo": -ll / n, "log_likelihood_per_step": ll / n, **diagnostics}

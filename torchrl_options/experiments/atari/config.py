@@ -40,7 +40,10 @@ class AtariConfig(DQNHyperParameters):
     drawn from the seed, every iteration run) or ``"defaults"``: the options network comes from a factory, a fresh one
     per start, and DDO gets :func:`~torchrl_options.discover_options`' default starts (``init="auto"``: 6 segment
     starts of 40 iterations selected by likelihood, when ``ddo_iterations >= 240``), still without the stopping
-    rule.
+    rule. ``ddo_usage_floor``: ``None`` (default, every kept run) or a share of the uniform usage in ``(0, 1)``,
+    :func:`~torchrl_options.discover_options`' ``usage_floor``: every option kept active on at least that share
+    of ``1 / K`` of the demonstrations' steps during the fit (against the collapse to one option that copies the
+    demonstrator).
 
     ``discount_per``: ``"step"`` (default, the SMDP target ``R + gamma^k max Q`` with rewards discounted inside an
     option) or ``"decision"`` (the authors' HDQN: an option's rewards summed undiscounted, one ``gamma`` per
@@ -93,6 +96,7 @@ class AtariConfig(DQNHyperParameters):
     ddo_lr: float = 1e-3
     ddo_m_steps: int = 1
     ddo_starts: str = "one"
+    ddo_usage_floor: float | None = None
     demo_random_episodes: int = 10
     # DQN: the fields of DQNHyperParameters, the paper's defaults where they differ from the agent's
     hidden_sizes: tuple[int, ...] = (64, 64, 64)
@@ -128,10 +132,12 @@ class AtariConfig(DQNHyperParameters):
 
     def __post_init__(self) -> None:
         from torchrl_options.checks import check_choice, check_int
+        from torchrl_options.discovery import check_usage_floor
 
         super().__post_init__()  # the DQN settings
         check_int(self.ddo_m_steps, "ddo_m_steps", minimum=1)  # refused when the settings are read, not after phase 1
         check_choice(self.ddo_starts, "ddo_starts", ("one", "defaults"))
+        check_usage_floor(self.ddo_usage_floor, "ddo_usage_floor")
         for name, (minimum, allow_none) in self._INTS.items():
             check_int(getattr(self, name), name, minimum=minimum, allow_none=allow_none)
         for name, (lo, hi) in self._NUMBERS.items():

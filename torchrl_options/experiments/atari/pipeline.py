@@ -119,6 +119,7 @@ def _phase2(game: str, config: AtariConfig, seed: int, seed_dir: str, agent):
         lr=config.ddo_lr,
         m_steps=config.ddo_m_steps,
         tol=None,  # the paper's protocol: every iteration run
+        usage_floor=config.ddo_usage_floor,
         device=config.device,
         seed=seed,
         progress=False,
