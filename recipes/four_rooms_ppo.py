@@ -17,7 +17,7 @@ from torchrl_options.experiments import run_sweep
 from torchrl_options.experiments.gridworld import run_gridworld_cell
 from torchrl_options.experiments.gridworld_config import gridworld_settings
 from torchrl_options.experiments.gridworld_run import GridWorldRun
-from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments.recipe_runner import recipe_guard, run_recipe_main
 
 TITLE = "Four rooms, PPO"
 
@@ -43,4 +43,4 @@ def main(cfg) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe_main(main)  # Hydra's refusals (an unknown key, a wrong type) as one line too

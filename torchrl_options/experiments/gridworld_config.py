@@ -3,7 +3,8 @@
 (:func:`apply_protocol`) and the checked settings a run reads (:func:`gridworld_settings`).
 
 The schema holds every key the recipes read, with its type: Hydra refuses an unknown key
-(``+discovery.num_optons=3``) or a value of the wrong type (``dqn.lr=abc``) while composing, naming the key. A
+(``discovery.num_optons=3``) or a value of the wrong type (``dqn.lr=abc``) while composing, naming the key; the
+entries of ``settings`` and ``conditions`` (a name each, which the command line may add) are typed when checked. A
 section's keys default to ``None``: left out, the reader's default applies (the ``dqn`` section's are
 :class:`~torchrl_options.agents.OptionsDQNConfig`'s, the ``discovery`` section's the preset's). What a type cannot
 say (ranges, choices, a map's name) each section's ``check`` refuses before any work starts, from the library's own
@@ -169,6 +170,20 @@ def _agent_config(config_cls: type, section: Any, name: str, **per_cell: Any) ->
         raise ValueError(f"{name}.{err}") from None
 
 
+def _entry(schema: type, value: Any, name: str) -> Any:
+    """A ``settings``/``conditions`` entry as its section's dataclass: an unknown key or a wrong type is refused
+    naming it (``conditions.H1u.mdoe``)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{name} must be a section (a mapping of settings), got {value!r}.")
+    try:
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), dict(value)))
+    except OmegaConfBaseException as err:
+        raise ValueError(f"{name}.{err.full_key}: {str(err.msg).splitlines()[0]}") from None
+
+
 # ------------------------------------------------------------------------------------------------ sections
 @dataclass
 class EnvSection:
@@ -278,8 +293,8 @@ class GreedySection:
         if self.epsilon != "agent":
             try:
                 check_number(self.epsilon, f"{name}.epsilon", lo=0.0, hi=1.0, allow_none=True)
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"{err} (or 'agent')") from None
+            except (TypeError, ValueError):
+                raise ValueError(f"{name}.epsilon must be 'agent' or a number in [0, 1], got {self.epsilon!r}.") from None
         check_choice(self.keep or "all", f"{name}.keep", ("all", "rewarded"))
 
 
@@ -412,8 +427,10 @@ class GridWorldRecipeConfig:
     discovery: DiscoverySection = field(default_factory=DiscoverySection)
     dqn: Optional[DQNSection] = None  # type: ignore[valid-type]
     ppo: Optional[PPOSection] = None  # type: ignore[valid-type]
-    settings: Dict[str, SettingSection] = field(default_factory=dict)
-    conditions: Dict[str, ConditionSection] = field(default_factory=dict)
+    # name -> SettingSection / ConditionSection: typed when checked, so that the command line can add one
+    # (``+conditions.H1x={mode: both}``), which OmegaConf refuses into a dict of dataclasses
+    settings: Dict[str, Any] = field(default_factory=dict)
+    conditions: Dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 100
     backend: str = "serial"
     num_workers: Optional[int] = None
@@ -446,9 +463,9 @@ class GridWorldRecipeConfig:
         self._check_names("settings_to_run", self.settings_to_run, self.settings, "settings")
         self._check_names("conditions_to_run", self.conditions_to_run, self.conditions, "conditions")
         for name in self.settings_to_run:
-            self.settings[name].check(f"settings.{name}", algorithm)
+            _entry(SettingSection, self.settings[name], f"settings.{name}").check(f"settings.{name}", algorithm)
         for name in self.conditions_to_run:
-            self.conditions[name].check(f"conditions.{name}")
+            _entry(ConditionSection, self.conditions[name], f"conditions.{name}").check(f"conditions.{name}")
         self.discovery.check("discovery")
         self.env.check("env")
         if self.demos is not None:

@@ -71,7 +71,8 @@ def check_seeds(value: Any, name: str = "seeds") -> None:
         ValueError: seeds must not repeat a seed, got [1, 1].
     """
     if isinstance(value, numbers.Integral) and not isinstance(value, bool):
-        check_int(value, f"{name} (a count)", minimum=1)
+        if value < 1:
+            raise ValueError(f"{name} must be a count >= 1 or a list of ints >= 0, got {value!r}.")
         return
     if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)) or not value or not all(
         isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 0 for s in value
