@@ -141,13 +141,15 @@ def test_agent_sections_are_the_agents_config_fields():
     for section, config in ((DQNSection, OptionsDQNConfig), (PPOSection, OptionsPPOConfig)):
         names = {f.name for f in dataclasses.fields(section)}
         assert names == {f.name for f in dataclasses.fields(config)} - {"mode", "num_envs", "seed"}
-        assert all(f.default is None for f in dataclasses.fields(section))
+        assert all(f.default == "???" for f in dataclasses.fields(section))  # not set: the agent's default
 
 
 def test_settings_left_out_take_the_readers_defaults():
     settings = gridworld_settings(_compose("two_rooms", "scale=tiny"))
     assert "protocol" not in settings and "algorithm" not in settings and "paper" not in settings["discovery"]
-    assert "max_decisions" not in settings["dqn"]  # null in two_rooms.yaml: OptionsDQNConfig's default
+    assert settings["dqn"]["max_decisions"] is None and "double_dqn" not in settings["dqn"]  # null is a value there
+    no_clipping = gridworld_settings(_compose("two_rooms", "scale=tiny", "dqn.max_grad_norm=null"))
+    assert no_clipping["dqn"]["max_grad_norm"] is None  # not OptionsDQNConfig's default 10.0
     assert settings["demos"]["env"] == {"start": "random", "goal": "random", "max_steps": 100}
     with pytest.raises(ValueError, match="dqn.gamma must be in"):
         gridworld_settings({**settings, "dqn": {**settings["dqn"], "gamma": 1.5}})

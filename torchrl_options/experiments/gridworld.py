@@ -46,10 +46,11 @@ from torchrl_options.checkpoints import (
 )
 from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
-from torchrl_options.experiments.gridworld_config import apply_protocol
+from torchrl_options.experiments.gridworld_config import AGENT_SECTIONS, apply_protocol
 from torchrl_options.experiments.gridworld_config import discovery_iterations as _discovery_iterations
 from torchrl_options.experiments.gridworld_config import discovery_kwargs as _discovery_kwargs
 from torchrl_options.experiments.gridworld_config import env_kwargs as _env_kwargs
+from torchrl_options.experiments.recipe_config import plain_settings
 from torchrl_options.experiments.sweep import Cell, CellResult
 from torchrl_options.hierarchy import discover_hierarchy, load_hierarchy, OptionHierarchy, save_hierarchy
 
@@ -244,8 +245,10 @@ def make_agent(
     :class:`~torchrl_options.agents.OptionsPPO` (settings from the ``ppo`` section) with ``cfg["algorithm"] == "ppo"``.
 
     ``options`` may be an :class:`~torchrl_options.OptionHierarchy`: its lower levels then run in nested
-    executors inside the env and the DQN chooses among primitives and the options of every level.
+    executors inside the env and the DQN chooses among primitives and the options of every level. Keys of ``cfg``
+    not set take their defaults (:func:`~torchrl_options.experiments.recipe_config.plain_settings`).
     """
+    cfg = plain_settings(cfg, keep_none=AGENT_SECTIONS)
     env_cfg, num_envs = dict(cfg["env"]), int(cfg["num_envs"])
     env_seed = 1000 * seed + 101
     inner = []
@@ -378,7 +381,9 @@ def _agent_rollouts(agent: OptionsDQN, cfg: Mapping[str, Any], rollouts: Mapping
 
 
 def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
-    """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache."""
+    """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache (keys of
+    ``cfg`` not set take their defaults)."""
+    cfg = plain_settings(cfg, keep_none=AGENT_SECTIONS)
     condition = cfg["conditions"][cell.condition]
     if condition["mode"] == "actions":
         return None
@@ -425,10 +430,12 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     limits episodes in decisions, with ``env.max_steps`` as a larger cap on primitive steps), ``episodes``,
     ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
-    and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
+    and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``. Keys not set take
+    their defaults (a composed config holds every key of the recipes' schema: ``None``, or ``???`` in the agent's
+    section, where ``None`` is a value).
     """
     with scoped_seed(cell.seed):  # the cell's random numbers come from its seed; the caller's are left as they were
-        return _run_cell(cell, dict(cfg))
+        return _run_cell(cell, plain_settings(cfg, keep_none=AGENT_SECTIONS))  # a key at None (the schema's "not set") takes its default
 
 
 def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:

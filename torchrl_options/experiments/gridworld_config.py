@@ -24,6 +24,7 @@ from torchrl_options.checks import check_bool, check_choice, check_int, check_nu
 from torchrl_options.discovery import DiscoverySettings, PAPER_SETTINGS
 from torchrl_options.envs import GridWorldEnv
 from torchrl_options.experiments.recipe_config import (
+    MISSING,
     agent_section,
     check_seeds,
     check_sweep,
@@ -33,6 +34,7 @@ from torchrl_options.experiments.recipe_config import (
 from torchrl_options.modules import OptionsMLP
 
 __all__ = [
+    "AGENT_SECTIONS",
     "DISCOVERY_PRESETS",
     "GridWorldRecipeConfig",
     "PROTOCOLS",
@@ -51,8 +53,9 @@ DISCOVERY_PRESETS = ("paper", "defaults")
 _DISCOVERY_KEYS = ("num_cells", "termination_cells", "activation", "init", "batch_size", "lr", "m_steps", "restarts", "tol")
 #: the agents' config fields the recipe sets per cell
 _PER_CELL = ("mode", "num_envs", "seed")
-#: OmegaConf's mark of a key the config must set
-MISSING = "???"
+#: the sections of an agent's settings, where ``None`` is a value (``max_grad_norm: null``) and a key not set is
+#: :data:`~torchrl_options.experiments.recipe_config.MISSING`
+AGENT_SECTIONS = ("dqn", "ppo")
 
 DQNSection = agent_section(OptionsDQNConfig, "DQNSection", _PER_CELL)
 PPOSection = agent_section(OptionsPPOConfig, "PPOSection", _PER_CELL)
@@ -158,9 +161,9 @@ def _check_sizes(value: Any, name: str) -> None:
         raise ValueError(f"{name} must be a list of ints >= 1, got {value!r}.")
 
 
-def _agent_config(config_cls: type, section: Any, name: str, **per_cell: Any) -> Any:
-    """``config_cls`` built from a section's non-null keys; its own checks' messages prefixed with the section."""
-    values = {k: v for k, v in dataclasses.asdict(section).items() if v is not None}
+def _agent_config(config_cls: type, section: Mapping[str, Any], name: str, **per_cell: Any) -> Any:
+    """``config_cls`` built from a section's keys set; its own checks' messages prefixed with the section."""
+    values = dict(section)
     if "hidden_sizes" in values:
         _check_sizes(values["hidden_sizes"], f"{name}.hidden_sizes")
         values["hidden_sizes"] = tuple(values["hidden_sizes"])
@@ -444,8 +447,9 @@ class GridWorldRecipeConfig:
     summary: SummarySection = field(default_factory=SummarySection)
     log_file: Optional[str] = None
 
-    def check(self) -> None:
-        """Refuses, naming it, the first setting out of range (after ``protocol`` was applied)."""
+    def check(self, agent: Mapping[str, Any] | None = None) -> None:
+        """Refuses, naming it, the first setting out of range (after ``protocol`` was applied); ``agent``: the keys
+        set in the ``dqn`` (or ``ppo``) section (the dataclass holds them as not set, ``???``)."""
         check_int(self.episodes, "episodes", minimum=1)
         check_seeds(self.seeds)
         check_int(self.num_envs, "num_envs", minimum=1)
@@ -474,7 +478,7 @@ class GridWorldRecipeConfig:
             check_int(getattr(self.summary, section), f"summary.{section}", minimum=1, allow_none=True)
         for section in ("num_starts", "max_length"):
             check_int(getattr(self.pictures, section), f"pictures.{section}", minimum=1, allow_none=True)
-        self._check_agent(algorithm)
+        self._check_agent(algorithm, agent)
 
     @staticmethod
     def _check_names(key: str, names: list[str], known: Mapping[str, Any], what: str) -> None:
@@ -484,9 +488,8 @@ class GridWorldRecipeConfig:
         if unknown:
             raise ValueError(f"{key}: unknown {what} {unknown}; defined: {sorted(known)}.")
 
-    def _check_agent(self, algorithm: str) -> None:
+    def _check_agent(self, algorithm: str, section: Mapping[str, Any] | None) -> None:
         """The ``dqn`` (or ``ppo``) section, as the agent's config; a collector batch of whole steps of the envs."""
-        section = self.ppo if algorithm == "ppo" else self.dqn
         if section is None:
             raise ValueError(f"{algorithm} must be a section of the agent's settings, got None.")
         config_cls = OptionsPPOConfig if algorithm == "ppo" else OptionsDQNConfig
@@ -502,7 +505,8 @@ def gridworld_settings(cfg: Any) -> dict[str, Any]:
     """The checked settings of a GridWorld recipe, as the run reads them: ``cfg`` (the composed Hydra config, or a
     plain mapping of the same keys) through :class:`GridWorldRecipeConfig` (unknown keys and wrong types refused,
     naming the key), ``protocol`` applied (:func:`apply_protocol`), every value checked
-    (:meth:`GridWorldRecipeConfig.check`), as plain dicts without the keys left at ``None``.
+    (:meth:`GridWorldRecipeConfig.check`), as plain dicts without the keys not set (``None``, or ``???`` in the
+    ``dqn``/``ppo`` sections, where ``None`` is a value).
 
     Raises:
         ValueError: naming the first bad setting, e.g. ``episodes must be an int >= 1, got -5.``
@@ -525,8 +529,9 @@ def gridworld_settings(cfg: Any) -> dict[str, Any]:
     """
     from omegaconf import OmegaConf
 
-    plain = apply_protocol(plain_settings(structured_settings(GridWorldRecipeConfig, cfg)))
-    OmegaConf.to_object(structured_settings(GridWorldRecipeConfig, plain)).check()
+    plain = apply_protocol(plain_settings(structured_settings(GridWorldRecipeConfig, cfg), keep_none=AGENT_SECTIONS))
+    rest = {k: v for k, v in plain.items() if k not in AGENT_SECTIONS}  # the agent's keys: checked as its config
+    OmegaConf.to_object(structured_settings(GridWorldRecipeConfig, rest)).check(plain.get(plain.get("algorithm") or "dqn"))
     return plain
 
 

@@ -17,10 +17,12 @@ from typing import Any, List, Literal, Optional
 
 from torchrl_options.checks import check_choice, check_int
 
-__all__ = ["BACKENDS", "agent_section", "check_seeds", "check_sweep", "plain_settings", "structured_settings"]
+__all__ = ["BACKENDS", "MISSING", "agent_section", "check_seeds", "check_sweep", "plain_settings", "structured_settings"]
 
 #: the sweep backends of :func:`~torchrl_options.experiments.run_sweep`
 BACKENDS = ("serial", "local", "ray")
+#: OmegaConf's mark of a value not set (``omegaconf.MISSING``)
+MISSING = "???"
 
 
 def _schema_type(hint: Any) -> Any:
@@ -41,18 +43,19 @@ def _schema_type(hint: Any) -> Any:
 def agent_section(config_cls: type, name: str, exclude: tuple[str, ...]) -> type:
     """The schema of a recipe section that holds the fields of ``config_cls`` (an agent's config dataclass, e.g.
     :class:`~torchrl_options.agents.OptionsDQNConfig`) but ``exclude`` (those the recipe sets per cell): every key
-    optional, ``None`` (left out) taking ``config_cls``'s default. The section's values are checked by building
-    ``config_cls`` from them.
+    optional and not set (:data:`MISSING`: left out of :func:`plain_settings`, so ``config_cls``'s default
+    applies), while a key set to ``None`` is passed on as ``None`` (``max_grad_norm: null``: no clipping). The
+    section's values are checked by building ``config_cls`` from them.
 
     Examples:
         >>> from torchrl_options.agents import OptionsDQNConfig
         >>> DQN = agent_section(OptionsDQNConfig, "DQNSection", exclude=("mode", "num_envs", "seed"))
-        >>> DQN().lr is None, "mode" in {f.name for f in dataclasses.fields(DQN)}
+        >>> DQN().lr == MISSING, "mode" in {f.name for f in dataclasses.fields(DQN)}
         (True, False)
     """
     hints = typing.get_type_hints(config_cls)
     entries = [
-        (f.name, Optional[_schema_type(hints[f.name])], dataclasses.field(default=None))
+        (f.name, Optional[_schema_type(hints[f.name])], dataclasses.field(default=MISSING))
         for f in dataclasses.fields(config_cls) if f.name not in exclude
     ]  # fmt: skip
     doc = f"The ``{name}`` section: the fields of :class:`{config_cls.__module__}.{config_cls.__name__}` but {exclude}."
@@ -88,11 +91,11 @@ def check_sweep(backend: Any, num_workers: Any, prefix: str = "") -> None:
     check_int(num_workers, f"{prefix}num_workers", minimum=1, allow_none=True)
 
 
-def _drop_none(value: Any) -> Any:
+def _drop_unset(value: Any, none: bool) -> Any:
     if isinstance(value, dict):
-        return {k: _drop_none(v) for k, v in value.items() if v is not None}
+        return {k: _drop_unset(v, none) for k, v in value.items() if v != MISSING and not (none and v is None)}
     if isinstance(value, list):
-        return [_drop_none(v) for v in value]
+        return [_drop_unset(v, none) for v in value]
     return value
 
 
@@ -110,13 +113,16 @@ def structured_settings(schema: type, cfg: Any) -> Any:
     return OmegaConf.merge(OmegaConf.structured(schema), cfg)
 
 
-def plain_settings(cfg: Any) -> dict[str, Any]:
-    """A config as plain nested dicts and lists, interpolations resolved, keys set to ``None`` left out (``None``
-    takes the default of whatever reads the setting).
+def plain_settings(cfg: Any, keep_none: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A config as plain nested dicts and lists, interpolations resolved, the keys not set (:data:`MISSING`) and
+    those set to ``None`` left out: the default of whatever reads the setting applies. In the top-level sections
+    named in ``keep_none`` (an agent's settings, :func:`agent_section`) ``None`` is a value and stays.
 
     Examples:
-        >>> plain_settings({"dqn": {"lr": 0.01, "max_decisions": None}, "seeds": [0, 1]})
-        {'dqn': {'lr': 0.01}, 'seeds': [0, 1]}
+        >>> plain_settings({"dqn": {"lr": 0.01, "max_grad_norm": None, "gamma": "???"}, "num_workers": None})
+        {'dqn': {'lr': 0.01}}
+        >>> plain_settings({"dqn": {"lr": 0.01, "max_grad_norm": None, "gamma": "???"}}, keep_none=("dqn",))
+        {'dqn': {'lr': 0.01, 'max_grad_norm': None}}
     """
     if not isinstance(cfg, Mapping):
         raise TypeError(f"a recipe config must be a mapping, got {type(cfg).__name__}.")
@@ -124,7 +130,8 @@ def plain_settings(cfg: Any) -> dict[str, Any]:
         from omegaconf import OmegaConf
 
         cfg = OmegaConf.to_container(cfg, resolve=True)
-    return _drop_none(_to_plain(cfg))
+    cfg = _to_plain(cfg)
+    return {k: _drop_unset(v, none=k not in keep_none) for k, v in cfg.items() if v != MISSING and v is not None}
 
 
 def _to_plain(value: Any) -> Any:
