@@ -266,8 +266,10 @@ class DiscoveryFields:
         try:
             DiscoverySettings(self.num_options, num_iterations=discovery_iterations(settings), **kwargs)
             if kwargs.get("num_cells", 8) != "auto":
-                OptionsMLP(2, 4, self.num_options, num_cells=kwargs.get("num_cells", 8),
-                           termination_cells=kwargs.get("termination_cells"), activation=kwargs.get("activation", "tanh"))
+                OptionsMLP(
+                    2, 4, self.num_options, num_cells=kwargs.get("num_cells", 8),
+                    termination_cells=kwargs.get("termination_cells"), activation=kwargs.get("activation", "tanh"),
+                )  # fmt: skip
         except (TypeError, ValueError) as err:
             raise ValueError(f"{name}.{err}") from None
 
@@ -297,7 +299,8 @@ class GreedySection:
             try:
                 check_number(self.epsilon, f"{name}.epsilon", lo=0.0, hi=1.0, allow_none=True)
             except (TypeError, ValueError):
-                raise ValueError(f"{name}.epsilon must be 'agent' or a number in [0, 1], got {self.epsilon!r}.") from None
+                what = "'agent' or a number in [0, 1]"
+                raise ValueError(f"{name}.epsilon must be {what}, got {self.epsilon!r}.") from None
         check_choice(self.keep or "all", f"{name}.keep", ("all", "rewarded"))
 
 
@@ -531,7 +534,8 @@ def gridworld_settings(cfg: Any) -> dict[str, Any]:
 
     plain = apply_protocol(plain_settings(structured_settings(GridWorldRecipeConfig, cfg), keep_none=AGENT_SECTIONS))
     rest = {k: v for k, v in plain.items() if k not in AGENT_SECTIONS}  # the agent's keys: checked as its config
-    OmegaConf.to_object(structured_settings(GridWorldRecipeConfig, rest)).check(plain.get(plain.get("algorithm") or "dqn"))
+    agent = plain.get(plain.get("algorithm") or "dqn")
+    OmegaConf.to_object(structured_settings(GridWorldRecipeConfig, rest)).check(agent)
     return plain
 
 

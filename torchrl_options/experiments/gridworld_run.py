@@ -87,14 +87,16 @@ class GridWorldRun:
     def sweep_options(self) -> dict[str, Any]:
         """:func:`~torchrl_options.experiments.run_sweep`'s ``backend``, ``num_workers`` and ``ray_address``."""
         s = self.settings
-        return {"backend": s.get("backend", "serial"), "num_workers": s.get("num_workers"), "ray_address": s.get("ray_address")}
+        return {"backend": s.get("backend", "serial"), "num_workers": s.get("num_workers"),
+                "ray_address": s.get("ray_address")}  # fmt: skip
 
     def __enter__(self) -> GridWorldRun:
         s = self.settings
         if self.quiet:
             logging.getLogger("torchrl").setLevel(logging.WARNING)  # TorchRL logs to its own console handler
             resume_logger.setLevel(logging.INFO)
-        check_run_settings(self.out, s, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(s.get("allow_changed_settings", False)))
+        allow = bool(s.get("allow_changed_settings", False))
+        check_run_settings(self.out, s, ignore=RUN_ONLY_SETTINGS, allow_changes=allow)
         self._stack.enter_context(log_to_file(self.out / (s.get("log_file") or "recipe.log"), quiet_console=self.quiet))
         self.results = ResultsLog(self.out / "results.csv")
         cells = [Cell(a, c, seed) for a in s["settings_to_run"] for c in s["conditions_to_run"] for seed in self.seeds]
@@ -102,7 +104,9 @@ class GridWorldRun:
         self.cells = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
         skipped = [c.name for c in cells if (c.setting, c.condition, c.seed) in done]
         if skipped:
-            resume_logger.info("resuming %s: %d finished cells skipped (%s)", self.out, len(skipped), ", ".join(skipped))
+            resume_logger.info(
+                "resuming %s: %d finished cells skipped (%s)", self.out, len(skipped), ", ".join(skipped)
+            )
         stop = s.get("stop_after_cells")
         self.stopped = stop is not None and len(self.cells) > int(stop)
         if self.stopped:
@@ -130,7 +134,8 @@ class GridWorldRun:
             logger.warning("stopped after %d cells (stop_after_cells); run again to resume.", len(self.cells))
             return None
         s = self.settings
-        text = write_summary(self.results, self.out, self.title, s.get("summary"), condition_order=list(s["conditions"]))
+        order = list(s["conditions"])
+        text = write_summary(self.results, self.out, self.title, s.get("summary"), condition_order=order)
         pictures = write_option_pictures(s, min(self.seeds))
         logger.info("summary:\n%s", text)
         logger.info("wrote results.csv, summary.md, curves.png and %d pictures/videos in %s", len(pictures), self.out)

@@ -17,7 +17,15 @@ from typing import Any, List, Literal, Optional
 
 from torchrl_options.checks import check_choice, check_int
 
-__all__ = ["BACKENDS", "MISSING", "agent_section", "check_seeds", "check_sweep", "plain_settings", "structured_settings"]
+__all__ = [
+    "BACKENDS",
+    "MISSING",
+    "agent_section",
+    "check_seeds",
+    "check_sweep",
+    "plain_settings",
+    "structured_settings",
+]
 
 #: the sweep backends of :func:`~torchrl_options.experiments.run_sweep`
 BACKENDS = ("serial", "local", "ray")
