@@ -40,7 +40,7 @@ from torchrl_options.experiments import (
     summary_markdown,
 )
 from torchrl_options.experiments.recipe_runner import recipe_guard
-from torchrl_options.experiments.validation import check_atari_recipe_settings
+from torchrl_options.experiments.atari.config import check_atari_recipe_settings
 from torchrl_options.experiments.atari import (
     AtariConfig,
     store_atari_config,

@@ -8,19 +8,31 @@ against A, paired by seed), curves.png and pictures/ to ``out_dir`` and prints t
     python recipes/four_rooms_ppo.py backend=local num_workers=2     # the same on 2 processes
     python recipes/four_rooms_ppo.py scale=tiny                      # seconds
 """
+from functools import partial
+
 import hydra
 import torch
 
-from torchrl_options.experiments.gridworld import run_gridworld_script
-from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments import run_sweep
+from torchrl_options.experiments.gridworld import run_gridworld_cell
+from torchrl_options.experiments.gridworld_config import gridworld_settings
+from torchrl_options.experiments.gridworld_run import GridWorldRun
+from torchrl_options.experiments.recipe_runner import recipe_guard, run_recipe_main
+
+TITLE = "Four rooms, PPO"
 
 
 def run(cfg, quiet: bool = False) -> str | None:
+    """The recipe on ``cfg`` (its composed config); returns the summary table (``None``: stopped early)."""
     torch.set_num_threads(1)  # the networks are tiny: one thread is the fastest
-    summary = run_gridworld_script(cfg, "Four rooms, PPO", quiet=quiet)
+    cfg = gridworld_settings(cfg)  # the schema's keys and types, protocol=paper merged, every value checked
+    with GridWorldRun(cfg, TITLE, quiet=quiet) as recipe:  # settings.json, the log file, the cells left to run
+        run_sweep(partial(run_gridworld_cell, cfg=cfg), recipe.cells, recipe.results, on_result=recipe.finished,
+                  **recipe.sweep_options)  # fmt: skip
+        summary = recipe.outputs()  # summary.md, curves.png, pictures/
     if summary is not None:
         print(summary)
-        print(f"results.csv, summary.md, curves.png and pictures/ in {cfg.out_dir}")
+        print(f"results.csv, summary.md, curves.png and pictures/ in {cfg['out_dir']}")
     return summary
 
 
@@ -31,4 +43,4 @@ def main(cfg) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe_main(main)  # Hydra's refusals (an unknown key, a wrong type) as one line too

@@ -34,8 +34,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options import discover_options, save_options
 from torchrl_options.envs import available_maps
-from torchrl_options.experiments.recipe_runner import recipe_guard
-from torchrl_options.experiments.validation import check_segment_settings
+from torchrl_options.experiments.recipe_runner import recipe_guard, run_recipe_main
+from torchrl_options.experiments.segment_config import segment_settings
 from torchrl_options.segmentation import (
     boundary_metrics,
     gridworld_subgoal_demonstrations,
@@ -78,7 +78,7 @@ def _fmt(x: float) -> str:
 
 def run(cfg: DictConfig) -> dict:
     """Runs the recipe; returns the metrics dict (also written to ``metrics.json``)."""
-    check_segment_settings(OmegaConf.to_container(cfg, resolve=True))  # every setting, before any work
+    cfg = segment_settings(cfg)  # the schema's keys and types, every value checked, before any work
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = load_data(cfg)
@@ -157,4 +157,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe_main(main)  # Hydra's refusals (an unknown key, a wrong type) as one line too

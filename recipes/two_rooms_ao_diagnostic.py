@@ -16,12 +16,11 @@ import os
 
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from torchrl_options.experiments import Cell
 from torchrl_options.experiments.gridworld import cell_options, make_agent
 from torchrl_options.experiments.recipe_runner import recipe_guard
-from torchrl_options.experiments.validation import check_gridworld_settings, SettingError
+from torchrl_options.experiments.gridworld_config import gridworld_settings
 
 
 def main(argv=None) -> list[tuple[int, float, float, float, float]]:
@@ -35,12 +34,11 @@ def main(argv=None) -> list[tuple[int, float, float, float, float]]:
     config_dir = os.path.join(os.path.dirname(os.path.abspath(__file__)), "config")
     with initialize_config_dir(config_dir, version_base="1.3"):
         cfg = compose("two_rooms", overrides=["out_dir=outputs/two_rooms_ao_diagnostic", "progress=false"] + args.overrides)
-    cfg = OmegaConf.to_container(cfg, resolve=True)
     for name in ("seed", "episodes", "every"):
         minimum = 0 if name == "seed" else 1
         if getattr(args, name) < minimum:
-            raise SettingError(f"--{name} must be an int >= {minimum}, got {getattr(args, name)}.")
-    check_gridworld_settings(cfg)  # the recipe settings, before any work
+            raise ValueError(f"--{name} must be an int >= {minimum}, got {getattr(args, name)}.")
+    cfg = gridworld_settings(cfg)  # the recipe settings, checked before any work
     options = cell_options(cfg, Cell("supervised", "AO", args.seed))
     K = int(cfg["discovery"]["num_options"])
     agent = make_agent(cfg, "both", args.seed, options, K)

@@ -25,11 +25,10 @@ from torchrl_options import (
     segment,
 )
 from torchrl_options.experiments.atari import AtariConfig
-from torchrl_options.experiments.validation import (
-    check_atari_recipe_settings,
-    check_gridworld_settings,
-    check_segment_settings,
-)
+from torchrl_options.experiments.atari.config import check_atari_recipe_settings
+from torchrl_options.experiments.gridworld_config import gridworld_settings
+from torchrl_options.experiments.recipe_runner import setting_error_line
+from torchrl_options.experiments.segment_config import segment_settings
 from torchrl_options.segmentation.io import load_trajectories, TrajectoryFileError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -331,14 +330,14 @@ def _changed(name, dotted, value, *overrides):
 
 GRIDWORLD = [
     ("episodes", -5, "episodes must be an int >= 1, got -5"),
-    ("episodes", "ten", "episodes must be an int >= 1, got 'ten'"),
+    ("episodes", "ten", "episodes: Value 'ten' of type 'str' could not be converted to Integer"),
     ("seeds", 0, "seeds must be a count >= 1"),
     ("seeds", [0, 0], "seeds must not repeat a seed"),
     ("seeds", [-1], "seeds must be a count >= 1 or a non-empty list of ints >= 0"),
     ("num_envs", 0, "num_envs must be an int >= 1"),
     ("checkpoint_every", 0, "checkpoint_every must be an int >= 1"),
     ("stop_after_cells", -1, "stop_after_cells must be an int >= 0"),
-    ("backend", "gpu", "backend must be one of ['serial', 'local', 'ray']"),
+    ("backend", "gpu", "backend must be one of ('serial', 'local', 'ray')"),
     ("num_workers", 0, "num_workers must be an int >= 1"),
     ("settings_to_run", ["nowhere"], "settings_to_run: unknown settings ['nowhere']"),
     ("conditions_to_run", [], "conditions_to_run must be a non-empty list"),
@@ -349,20 +348,20 @@ GRIDWORLD = [
     ("settings.exploration.source", "oracle", "settings.exploration.source must be one of"),
     ("settings.exploration.pretrain_episodes", 0, "settings.exploration.pretrain_episodes must be an int >= 1"),
     ("settings.exploration.greedy.num", 0, "settings.exploration.greedy.num must be an int >= 1"),
-    ("settings.exploration.greedy.epsilon", 1.5, "settings.exploration.greedy.epsilon (or 'agent') must be a number in [0, 1]"),
-    ("settings.exploration.greedy.epsilon", "greedy", "settings.exploration.greedy.epsilon (or 'agent') must be a number"),
-    ("settings.exploration.greedy.keep", "best", "settings.exploration.greedy.keep must be one of ['all', 'rewarded']"),
-    ("discovery.preset", "fast", "discovery.preset must be one of ['paper', 'defaults']"),
+    ("settings.exploration.greedy.epsilon", 1.5, "settings.exploration.greedy.epsilon must be 'agent' or a number in [0, 1], got 1.5"),
+    ("settings.exploration.greedy.epsilon", "greedy", "settings.exploration.greedy.epsilon must be 'agent' or a number in [0, 1], got 'greedy'"),
+    ("settings.exploration.greedy.keep", "best", "settings.exploration.greedy.keep must be one of ('all', 'rewarded')"),
+    ("discovery.preset", "fast", "discovery.preset must be one of ('paper', 'defaults')"),
     ("discovery.m_steps", 0, "discovery.m_steps must be an int >= 1"),
     ("discovery.restarts", 0, "discovery.restarts must be an int >= 1"),
-    ("discovery.tol", -1, "discovery.tol must be a number in [0, inf]"),
+    ("discovery.tol", -1, "discovery.tol must be a number >= 0, got -1"),
     ("discovery.num_options", 0, "discovery.num_options must be an int >= 1"),
     ("discovery.num_iterations", -1, "discovery.num_iterations must be an int >= 0"),
-    ("discovery.lr", 0, "discovery.lr must be a number in (0, inf]"),
+    ("discovery.lr", 0, "discovery.lr must be a positive finite number, got 0"),
     ("discovery.batch_size", 0, "discovery.batch_size must be an int >= 1"),
     ("discovery.init", "zeros", "discovery.init must be one of"),
     ("discovery.activation", "swish", "discovery.activation must be one of"),
-    ("discovery.num_cells", [0], "discovery.num_cells must be an int >= 1 or a list"),
+    ("discovery.num_cells", [0], "discovery.num_cells must be one positive int or a non-empty sequence of them"),
     ("demos.num", 0, "demos.num must be an int >= 1"),
     ("demos.length", -1, "demos.length must be an int >= 1"),
     ("env.noise", 2, "env.noise must be a number in [0, 1]"),
@@ -374,21 +373,27 @@ GRIDWORLD = [
     ("dqn.batch_size", 0, "dqn.batch_size must be an int >= 1"),
     ("dqn.frames_per_batch", 100, "dqn.frames_per_batch must be a multiple of num_envs (16), got 100"),
     ("dqn.hidden_sizes", [0], "dqn.hidden_sizes must be a list of ints >= 1"),
-    ("dqn.warp_speed", 9, "dqn: unknown setting"),
+    ("dqn.warp_speed", 9, "dqn.warp_speed: Key 'warp_speed' not in 'DQNSection'"),
     ("summary.final_window", 0, "summary.final_window must be an int >= 1"),
     ("pictures.num_starts", 0, "pictures.num_starts must be an int >= 1"),
     ("out_dir", "", "out_dir must be a folder name"),
+    ("discovery.num_optons", 3, "discovery.num_optons: Key 'num_optons' not in 'DiscoverySection'"),
+    ("dqn.lr", "abc", "dqn.lr: Value 'abc' of type 'str' could not be converted to Float"),
+    ("conditions.H1u.levels", "two", "conditions.H1u.levels: Value 'two' of type 'str' could not be converted to Integer"),
+    ("scale.four_rooms.epsiodes", 3, "scale.four_rooms.epsiodes: Key 'epsiodes' not in 'RecipeScale'"),
+    ("log_file", "logs/run.log", "log_file must be a file name"),
 ]  # fmt: skip
 
 
 @pytest.mark.parametrize("key, value, phrase", GRIDWORLD, ids=[f"{k}={v!r}" for k, v, _ in GRIDWORLD])
 def test_gridworld_recipe_settings(key, value, phrase):
-    from torchrl_options.experiments.validation import SettingError
-
+    """The schema (GridWorldRecipeConfig) refuses the key or the value, naming it, in one line."""
     cfg = _changed("four_rooms", key, value, "scale=tiny")
-    with pytest.raises(SettingError) as info:
-        check_gridworld_settings(cfg)
-    assert phrase in str(info.value)
+    with pytest.raises(Exception) as info:
+        gridworld_settings(cfg)
+    assert isinstance(info.value, (ValueError, TypeError, KeyError)), repr(info.value)
+    line = setting_error_line(info.value)
+    assert phrase in line and "\n" not in line, line
 
 
 ATARI = [
@@ -417,10 +422,10 @@ SEGMENT = [
     ("data.num_trajectories", 0, "data.num_trajectories must be an int >= 1"),
     ("data.format", "csv", "data.format must be one of"),
     ("discovery.num_options", 0, "discovery.num_options must be an int >= 1"),
-    ("discovery.lr", -1, "discovery.lr must be a number in (0, inf]"),
-    ("discovery.num_cells", [0], "discovery.num_cells must be a list of ints >= 1"),
-    ("discovery.init_scale", 0.0, "discovery.init_scale must be a number in (0, inf]"),
-    ("discovery.init_scale", "one", "discovery.init_scale must be a number in (0, inf]"),
+    ("discovery.lr", -1, "discovery.lr must be a positive finite number, got -1"),
+    ("discovery.num_cells", [0], "discovery.num_cells must be a non-empty list of ints >= 1, got [0]"),
+    ("discovery.init_scale", 0.0, "discovery.init_scale must be a positive finite number, got 0"),
+    ("discovery.init_scale", "one", "discovery.init_scale: Value 'one' of type 'str' could not be converted to Float"),
     ("segmentation.method", "greedy", "segmentation.method must be one of"),
     ("segmentation.boundary", "edge", "segmentation.boundary must be one of"),
     ("segmentation.baseline_samples", 0, "segmentation.baseline_samples must be an int >= 1"),
@@ -431,20 +436,59 @@ SEGMENT = [
 @pytest.mark.parametrize("key, value, phrase", SEGMENT, ids=[f"{k}={v!r}" for k, v, _ in SEGMENT])
 def test_segment_recipe_settings(key, value, phrase):
     cfg = _changed("segment", key, value)
-    with pytest.raises(ValueError) as info:
-        check_segment_settings(cfg)
-    assert phrase in str(info.value)
+    with pytest.raises(Exception) as info:
+        segment_settings(cfg)
+    assert isinstance(info.value, (ValueError, TypeError, KeyError)), repr(info.value)
+    line = setting_error_line(info.value)
+    assert phrase in line and "\n" not in line, line
+
+
+def test_gridworld_discovery_init_is_the_librarys():
+    """``discovery.init`` takes what discover_options takes (DiscoverySettings' INITS), nothing else."""
+    from torchrl_options.discovery import INITS
+
+    assert {"random", "kmeans", "segments", "auto"} <= set(INITS)
+    for init in INITS:
+        assert gridworld_settings(_changed("four_rooms", "discovery.init", init, "scale=tiny"))["discovery"]["init"] == init
+        assert segment_settings(_changed("segment", "discovery.init", init)).discovery.init == init
+    with pytest.raises(ValueError, match="discovery.init must be one of 'random', 'kmeans'"):
+        gridworld_settings(_changed("four_rooms", "discovery.init", "spectral", "scale=tiny"))
+
+
+@pytest.mark.parametrize(
+    "override, phrase",
+    [("+discovery.num_optons=3", "error: discovery.num_optons: Key 'num_optons' not in 'DiscoverySection'"),
+     ("discovery.num_optons=3", "discovery.num_optons: Key 'num_optons' not in 'DiscoverySection'"),
+     ("dqn.lr=abc", "error: Error merging override dqn.lr=abc: dqn.lr: Value 'abc' of type 'str' could not be "
+                    "converted to Float"),
+     ("env.grid=nope", "error: env: Unknown map 'nope'")],
+)  # fmt: skip
+def test_gridworld_recipe_refuses_on_the_command_line_in_one_line(tmp_path, override, phrase):
+    """Hydra's refusals while composing (an unknown key, a wrong type) and the schema's value checks end the
+    same way: status 2, one line through recipe_guard, no traceback, nothing run."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "four_rooms.py"), "scale=tiny", f"out_dir={out}", override],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and phrase in lines[0], result.stderr
+    assert not (out / "results.csv").exists()
 
 
 def test_segment_file_source_needs_a_path():
     cfg = _changed("segment", "data.source", "file")
     with pytest.raises(ValueError, match="data.source=file needs data.path"):
-        check_segment_settings(cfg)
+        segment_settings(cfg)
 
 
 def test_valid_recipe_settings_pass():
     for name, overrides in (("four_rooms", ["scale=tiny"]), ("four_rooms", ["scale=paper"]), ("two_rooms", []),
                             ("three_rooms", []), ("segment", [])):  # fmt: skip
         cfg = _recipe_cfg(name, *overrides)
-        (check_segment_settings if name == "segment" else check_gridworld_settings)(cfg)
+        (segment_settings if name == "segment" else gridworld_settings)(cfg)
     check_atari_recipe_settings(_recipe_cfg("atari_ram", "preset=paper"))

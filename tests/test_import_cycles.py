@@ -8,10 +8,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "torchrl_options"
 
-KNOWN_CYCLES = [
-    # issue 51 part 4 (the recipes' Hydra schema replaces the hand-written one in experiments/validation.py)
-    {"torchrl_options.experiments.gridworld", "torchrl_options.experiments.validation"},
-]
+KNOWN_CYCLES = []
 
 
 def _modules() -> dict[str, Path]:

@@ -519,7 +519,7 @@ def test_phase2_one_hot_options_their_fit_and_the_quality_gate(tmp_path, caplog)
 
 def test_faithful_settings_reach_the_env_and_the_agent():
     from torchrl_options.envs.atari import PAPER_ENV_SETTINGS
-    from torchrl_options.experiments.validation import check_atari_recipe_settings
+    from torchrl_options.experiments.atari.config import check_atari_recipe_settings
     from omegaconf import OmegaConf
 
     cfg = _config(["preset=faithful"])
@@ -563,7 +563,7 @@ def test_ray_cluster_config_and_the_sweep_command():
     import yaml
     from omegaconf import OmegaConf
 
-    from torchrl_options.experiments.validation import check_atari_recipe_settings
+    from torchrl_options.experiments.atari.config import check_atari_recipe_settings
 
     with open(os.path.join(ROOT, "recipes", "ray", "atari_faithful.yaml")) as f:
         cluster = yaml.safe_load(f)

@@ -43,14 +43,16 @@ def test_four_rooms_ppo_recipe_tiny_and_resume(tmp_path):
 
 @pytest.mark.parametrize(
     "override, match",
-    [("ppo.clip_epsilon=-1", "ppo.clip_epsilon"), ("+ppo.bogus=1", "ppo: unknown setting"),
+    [("ppo.clip_epsilon=-1", "ppo.clip_epsilon"), ("+ppo.bogus=1", "ppo.bogus: Key 'bogus' not in 'PPOSection'"),
      ("algorithm=a2c", "algorithm"), ("+settings.exploration={source: greedy}", "supervised settings only")],
 )  # fmt: skip
 def test_four_rooms_ppo_recipe_refuses_bad_settings(tmp_path, override, match):
-    from torchrl_options.experiments.validation import check_gridworld_settings, SettingError
+    from torchrl_options.experiments.gridworld_config import gridworld_settings
+    from torchrl_options.experiments.recipe_runner import setting_error_line
 
     cfg = OmegaConf.to_container(_cfg(tmp_path / "bad", override), resolve=True)
     if "exploration" in override:
         cfg["settings_to_run"] = ["supervised", "exploration"]
-    with pytest.raises(SettingError, match=match):
-        check_gridworld_settings(cfg)
+    with pytest.raises((ValueError, KeyError)) as info:
+        gridworld_settings(cfg)
+    assert match in setting_error_line(info.value)

@@ -16,7 +16,8 @@ Everything slow is checkpointed under ``<out_dir>/cells``: discovered options (:
 pre-trained agent and its greedy trajectories, and every DQN every ``checkpoint_every`` episodes (networks,
 target, optimizer, epsilon, replay buffer and the returns so far), so a killed recipe resumes mid-cell.
 
-The configuration is a plain dict (the recipes pass their Hydra config as a container); see
+The configuration is a plain dict: the recipes' settings checked by
+:func:`~torchrl_options.experiments.gridworld_config.gridworld_settings` (their schema); see
 ``recipes/config/four_rooms.yaml`` for every key and the reasons behind the defaults.
 """
 from __future__ import annotations
@@ -45,8 +46,11 @@ from torchrl_options.checkpoints import (
 )
 from torchrl_options.discovery import discover_options, load_options, PAPER_SETTINGS, save_options
 from torchrl_options.envs import GridWorldEnv, generate_demonstrations
-from torchrl_options.experiments.run_settings import check_run_settings
-from torchrl_options.experiments.validation import check_gridworld_settings
+from torchrl_options.experiments.gridworld_config import AGENT_SECTIONS, apply_protocol
+from torchrl_options.experiments.gridworld_config import discovery_iterations as _discovery_iterations
+from torchrl_options.experiments.gridworld_config import discovery_kwargs as _discovery_kwargs
+from torchrl_options.experiments.gridworld_config import env_kwargs as _env_kwargs
+from torchrl_options.experiments.recipe_config import plain_settings
 from torchrl_options.experiments.sweep import Cell, CellResult
 from torchrl_options.hierarchy import discover_hierarchy, load_hierarchy, OptionHierarchy, save_hierarchy
 
@@ -59,8 +63,6 @@ __all__ = [
     "cell_dir",
     "reach_table",
     "apply_protocol",
-    "run_gridworld_recipe",
-    "run_gridworld_script",
     "write_option_pictures",
     "write_summary",
 ]
@@ -68,14 +70,6 @@ __all__ = [
 logger = logging.getLogger(__name__)
 #: what a resumed run skips and where it resumes: kept on the console when the recipes quiet the rest
 resume_logger = logging.getLogger("torchrl_options.resume")
-
-
-def _env_kwargs(env_cfg: Mapping[str, Any]) -> dict[str, Any]:
-    kwargs = {k: v for k, v in dict(env_cfg).items() if v is not None}
-    for key in ("start", "goal"):
-        if isinstance(kwargs.get(key), (list, tuple)):
-            kwargs[key] = tuple(int(v) for v in kwargs[key])
-    return kwargs
 
 
 def make_env(env_cfg: Mapping[str, Any], num_envs: int, seed: int) -> GridWorldEnv:
@@ -156,39 +150,6 @@ def _trajectories(cfg: Mapping[str, Any], seed: int) -> TensorDict:
 
 
 # ------------------------------------------------------------------------------------------------ discovery
-#: the DDO settings a recipe's ``discovery.preset`` starts from; the section's own (non-null) keys override them
-DISCOVERY_PRESETS = ("paper", "defaults")
-_DISCOVERY_KEYS = ("num_cells", "termination_cells", "activation", "init", "batch_size", "lr", "m_steps", "restarts", "tol")
-
-
-def _discovery_kwargs(discovery: Mapping[str, Any]) -> dict[str, Any]:
-    """The DDO settings of a recipe's ``discovery`` section shared by one- and multi-level discovery.
-
-    ``discovery.preset`` says what the section leaves out (or sets to null): ``"paper"`` (the default when the
-    section has no preset) takes :data:`~torchrl_options.discovery.PAPER_SETTINGS`, so that the recipes reproduce the
-    paper's protocol; ``"defaults"`` takes :func:`~torchrl_options.discover_options`'s own defaults.
-    """
-    preset = discovery.get("preset") or "paper"
-    base = dict(PAPER_SETTINGS) if preset == "paper" else {}
-    base.pop("num_iterations", None)
-    base.pop("termination_cells", None)  # as before presets: the termination networks are num_cells wide unless set
-    kwargs = {"num_actions": 4, **{k: base[k] for k in _DISCOVERY_KEYS if k in base}}
-    for key in _DISCOVERY_KEYS:
-        if discovery.get(key) is not None:
-            kwargs[key] = discovery[key]
-    if isinstance(kwargs.get("num_cells"), list):
-        kwargs["num_cells"] = tuple(kwargs["num_cells"])
-    return kwargs
-
-
-def _discovery_iterations(discovery: Mapping[str, Any]) -> int:
-    """The most DDO iterations: the section's ``num_iterations``, else the preset's (paper: 500; defaults: 1000,
-    which the stopping rule usually ends sooner)."""
-    if discovery.get("num_iterations") is not None:
-        return int(discovery["num_iterations"])
-    return int(PAPER_SETTINGS["num_iterations"]) if (discovery.get("preset") or "paper") == "paper" else 1000
-
-
 def discover_cached(
     trajectories: TensorDict | Callable[[], TensorDict],
     path: str | os.PathLike,
@@ -284,8 +245,10 @@ def make_agent(
     :class:`~torchrl_options.agents.OptionsPPO` (settings from the ``ppo`` section) with ``cfg["algorithm"] == "ppo"``.
 
     ``options`` may be an :class:`~torchrl_options.OptionHierarchy`: its lower levels then run in nested
-    executors inside the env and the DQN chooses among primitives and the options of every level.
+    executors inside the env and the DQN chooses among primitives and the options of every level. Keys of ``cfg``
+    not set take their defaults (:func:`~torchrl_options.experiments.recipe_config.plain_settings`).
     """
+    cfg = plain_settings(cfg, keep_none=AGENT_SECTIONS)
     env_cfg, num_envs = dict(cfg["env"]), int(cfg["num_envs"])
     env_seed = 1000 * seed + 101
     inner = []
@@ -418,7 +381,9 @@ def _agent_rollouts(agent: OptionsDQN, cfg: Mapping[str, Any], rollouts: Mapping
 
 
 def cell_options(cfg: Mapping[str, Any], cell: Cell, *, progress: bool = False):
-    """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache."""
+    """The options of a cell's condition (``None`` for actions only), discovered or loaded from the cache (keys of
+    ``cfg`` not set take their defaults)."""
+    cfg = plain_settings(cfg, keep_none=AGENT_SECTIONS)
     condition = cfg["conditions"][cell.condition]
     if condition["mode"] == "actions":
         return None
@@ -465,10 +430,12 @@ def run_gridworld_cell(cell: Cell, cfg: Mapping[str, Any]) -> CellResult:
     limits episodes in decisions, with ``env.max_steps`` as a larger cap on primitive steps), ``episodes``,
     ``checkpoint_every``, ``settings`` (per setting: ``source`` and, for ``greedy``, ``pretrain_episodes`` and
     ``greedy: {num, length}``), ``conditions`` (per condition: ``mode``, ``meta_control``, optional ``levels``
-    and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``.
+    and an optional ``episodes`` that overrides the global one), ``logger`` and ``progress``. Keys not set take
+    their defaults (a composed config holds every key of the recipes' schema: ``None``, or ``???`` in the agent's
+    section, where ``None`` is a value).
     """
     with scoped_seed(cell.seed):  # the cell's random numbers come from its seed; the caller's are left as they were
-        return _run_cell(cell, dict(cfg))
+        return _run_cell(cell, plain_settings(cfg, keep_none=AGENT_SECTIONS))  # a key at None (the schema's "not set") takes its default
 
 
 def _run_cell(cell: Cell, cfg: dict[str, Any]) -> CellResult:
@@ -532,130 +499,6 @@ def reach_table(log, target: float, window: int, *, condition_order: Sequence[st
         m, lo, hi = within(mean_interval(counts), min(window, *lengths), max(lengths))
         lines.append(f"| {setting} | {condition} | {_count(m)} [{_count(lo)}, {_count(hi)}] | {reached}/{len(runs)} |")
     return "\n".join(lines) + "\n"
-
-
-#: Recipe keys that choose which cells run, how they run or how the summary reads: a run may be resumed with
-#: other values of these; every other key defines the cells (:func:`check_run_settings`). ``checkpoint_every``
-#: defines them too: each checkpoint ends a chunk of training, whose episodes restart.
-RUN_ONLY_SETTINGS = (
-    "out_dir", "seeds", "settings_to_run", "conditions_to_run", "backend", "num_workers", "ray_address",
-    "stop_after_cells", "progress", "verbose", "logger", "pictures", "summary", "scale",
-    "allow_changed_settings", "log_file",
-)  # fmt: skip
-
-
-PROTOCOLS = ("ours", "paper")
-
-
-def apply_protocol(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The recipe config with its ``protocol`` applied: ``"ours"`` (the default) drops every section's ``paper``
-    sub-section; ``"paper"`` merges each ``paper`` sub-section into its section (recursively), so that one
-    setting, ``protocol=paper``, gives back the paper's protocol (its DDO settings, its greedy rollouts) where the
-    recipe's defaults are the ones measured best (``docs/experiments/gridworld.md``).
-
-    Examples:
-        >>> cfg = {"protocol": "paper", "discovery": {"preset": "defaults", "num_options": 4, "paper": {"preset": "paper"}}}
-        >>> apply_protocol(cfg)["discovery"]
-        {'preset': 'paper', 'num_options': 4}
-        >>> apply_protocol({**cfg, "protocol": "ours"})["discovery"]
-        {'preset': 'defaults', 'num_options': 4}
-    """
-    from torchrl_options.experiments.validation import SettingError
-
-    protocol = cfg.get("protocol", "ours")
-    if protocol not in PROTOCOLS:
-        raise SettingError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}.")
-
-    def resolve(section: Any, name: str) -> Any:
-        if not isinstance(section, Mapping):
-            return section
-        out = {k: resolve(v, f"{name}.{k}" if name else k) for k, v in section.items() if k != "paper"}
-        paper = section.get("paper")
-        if paper is not None and protocol == "paper":
-            if not isinstance(paper, Mapping):
-                raise SettingError(f"{name + '.' if name else ''}paper must be a section of the paper's settings, got {paper!r}.")
-            out = _merge(out, {k: resolve(v, f"{name}.paper.{k}") for k, v in paper.items()})
-        return out
-
-    return resolve(dict(cfg), "")
-
-
-def _merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in override.items():
-        out[key] = _merge(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), Mapping) else value
-    return out
-
-
-def run_gridworld_recipe(cfg: Mapping[str, Any], title: str, *, quiet_console: bool = False) -> str | None:
-    """What every GridWorld recipe does: the sweep over (setting, condition, seed), then the outputs.
-
-    Writes ``results.csv``, ``summary.md``, ``curves.png``, ``pictures/`` (the discovered options of the first
-    seed: pictures and videos) and the log, ``cfg["log_file"]`` (default ``recipe.log``), to ``cfg["out_dir"]``
-    and nothing elsewhere; returns the summary (``None`` when stopped early by ``stop_after_cells``, which the tests
-    use to interrupt a run). A resumed run logs the finished cells it skips. A run resumed into an ``out_dir``
-    whose recorded settings differ (any key but :data:`RUN_ONLY_SETTINGS`) is refused, unless
-    ``cfg["allow_changed_settings"]``. ``quiet_console``: the package's INFO records go to the log file only
-    (:func:`~torchrl_options.experiments.recipe_runner.log_to_file`).
-    """
-    from torchrl_options.experiments.recipe_runner import log_to_file
-
-    cfg = apply_protocol(cfg)  # protocol=paper: the paper's settings where they differ from the recipe's defaults
-    check_gridworld_settings(cfg)  # every setting, before any work starts
-    out = Path(cfg["out_dir"])
-    log_file = cfg.get("log_file") or "recipe.log"
-    if not isinstance(log_file, str) or Path(log_file).name != log_file:
-        raise ValueError(f"log_file must be a file name (written in out_dir), got {log_file!r}.")
-    check_run_settings(out, cfg, ignore=RUN_ONLY_SETTINGS, allow_changes=bool(cfg.get("allow_changed_settings", False)))
-    with log_to_file(out / log_file, quiet_console=quiet_console):
-        return _run_recipe(cfg, title, out)
-
-
-def _run_recipe(cfg: dict[str, Any], title: str, out: Path) -> str | None:
-    import functools
-
-    from torchrl_options.experiments.results import ResultsLog
-    from torchrl_options.experiments.sweep import run_sweep
-
-    log = ResultsLog(out / "results.csv")
-    seeds = list(range(int(cfg["seeds"]))) if isinstance(cfg["seeds"], int) else list(cfg["seeds"])
-    cells = [Cell(s, c, seed) for s in cfg["settings_to_run"] for c in cfg["conditions_to_run"] for seed in seeds]
-    done = log.done_cells()
-    todo = [c for c in cells if (c.setting, c.condition, c.seed) not in done]
-    skipped = [c.name for c in cells if (c.setting, c.condition, c.seed) in done]
-    if skipped:
-        resume_logger.info("resuming %s: %d finished cells skipped (%s)", out, len(skipped), ", ".join(skipped))
-    stop = cfg.get("stop_after_cells")
-    stopped = stop is not None and len(todo) > int(stop)
-    if stopped:
-        todo = todo[: int(stop)]
-    logger.info("%s: %d cells to run in %s (%s)", title, len(todo), out, ", ".join(c.name for c in todo) or "none")
-    bar = None
-    if cfg.get("progress", False) and cfg.get("backend", "serial") != "serial":
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(todo), desc=f"{title}: cells", unit="cell")
-
-    def finished(cell: Cell, result: CellResult) -> None:
-        logger.info("cell %s finished: %d episodes", cell.name, len(result.returns))
-        if bar is not None:
-            bar.update(1)
-
-    run_sweep(
-        functools.partial(run_gridworld_cell, cfg=cfg), todo, log, backend=cfg.get("backend", "serial"),
-        num_workers=cfg.get("num_workers"), ray_address=cfg.get("ray_address"), on_result=finished,
-    )  # fmt: skip
-    if bar is not None:
-        bar.close()
-    if stopped:
-        logger.warning("stopped after %d cells (stop_after_cells); run again to resume.", int(stop))
-        return None
-
-    text = write_summary(log, out, title, cfg.get("summary"), condition_order=list(cfg["conditions"]))
-    pictures = write_option_pictures(cfg, min(seeds))
-    logger.info("summary:\n%s", text)
-    logger.info("wrote results.csv, summary.md, curves.png and %d pictures/videos in %s", len(pictures), out)
-    return text
 
 
 def write_summary(
@@ -761,28 +604,3 @@ def write_option_pictures(cfg: Mapping[str, Any], seed: int) -> list[Path]:
             )  # fmt: skip
             written.append(target)
     return written
-
-
-def run_gridworld_script(cfg: Any, title: str, *, quiet: bool = False) -> str | None:
-    """What a GridWorld recipe script does with its Hydra config: the recipe, its console kept quiet if asked
-    (the script sets the thread count: one torch thread suits the tiny networks). Returns the summary table
-    (``None`` when the run stopped early), for the script to print.
-
-    Args:
-        cfg: the recipe's config (an OmegaConf ``DictConfig`` or a plain mapping).
-        title (str): the summary's title.
-
-    Keyword Args:
-        quiet (bool): keep the console to progress bars, warnings, resume messages and the summary unless
-            ``cfg.verbose`` (the per-batch DQN/DDO logs otherwise); the log file (``cfg.log_file`` in
-            ``out_dir``) holds them either way.
-    """
-    if not isinstance(cfg, Mapping) or type(cfg).__name__ == "DictConfig":
-        from omegaconf import OmegaConf
-
-        cfg = OmegaConf.to_container(cfg, resolve=True)
-    quiet = quiet and not cfg.get("verbose", False)
-    if quiet:
-        logging.getLogger("torchrl").setLevel(logging.WARNING)  # TorchRL logs to its own console handler
-        resume_logger.setLevel(logging.INFO)
-    return run_gridworld_recipe(cfg, title, quiet_console=quiet)

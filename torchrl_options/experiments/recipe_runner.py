@@ -14,10 +14,11 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
-__all__ = ["log_to_file", "recipe_guard"]
+__all__ = ["log_to_file", "recipe_guard", "run_recipe_main", "setting_error_line"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +58,9 @@ def _finished_cells(out_dir: str | os.PathLike) -> int:
 def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") -> Iterator[None]:
     """Wraps a recipe's work: SIGTERM becomes an interruption like Ctrl-C; an interruption (also one hidden by an
     error raised on its way out) exits with status 130 and one line (``interrupted: N finished cells in
-    <out_dir>/results.csv, ...; run the same command again to resume.``); a refused setting (``ValueError``/``TypeError``) exits with status 2 and one line ``error: ...``.
+    <out_dir>/results.csv, ...; run the same command again to resume.``); a refused setting (``ValueError``/``TypeError``,
+    or an OmegaConf/Hydra error: an unknown key, a wrong type) exits with status 2 and one line ``error: ...``
+    (:func:`setting_error_line`).
 
     Args:
         out_dir: the recipe's output folder (named in the message).
@@ -80,9 +83,10 @@ def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") 
         yield
     except BaseException as err:
         if isinstance(err, SystemExit) or not _interruption(err):
-            if not isinstance(err, (ValueError, TypeError)) or os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
+            refused = isinstance(err, (ValueError, TypeError)) or _is_config_error(err)
+            if not refused or os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
                 raise
-            print(f"error: {err}", file=sys.stderr)
+            print(f"error: {setting_error_line(err)}", file=sys.stderr)
             raise SystemExit(2) from None
         where = os.fspath(out_dir) if out_dir is not None else "the output folder"
         n = _finished_cells(out_dir) if out_dir is not None else 0
@@ -95,6 +99,60 @@ def recipe_guard(out_dir: str | os.PathLike | None, checkpoints: str = "cells") 
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _is_config_error(err: BaseException) -> bool:
+    """An OmegaConf error (an unknown key, a wrong type) or Hydra's failure to compose a config."""
+    return any(c.__module__.split(".")[0] in ("omegaconf", "hydra") and c.__name__ in (
+        "OmegaConfBaseException", "ConfigCompositionException", "HydraException") for c in type(err).__mro__)
+
+
+def setting_error_line(err: BaseException) -> str:
+    """One line for a refused setting: the message of a ``ValueError``/``TypeError``; for an OmegaConf error the
+    key (``full_key``) and the first line of its message; for Hydra's composition error its message (e.g. the
+    options of a config group) and its cause's.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"dqn": {"lr": 0.01}})
+        >>> OmegaConf.set_struct(cfg, True)
+        >>> try:
+        ...     cfg.dqn.lrr = 1
+        ... except Exception as err:
+        ...     print(setting_error_line(err))
+        dqn.lrr: Key 'lrr' is not in struct
+    """
+    if _is_config_error(err) and getattr(err, "full_key", None) is not None:
+        return f"{err.full_key}: {str(getattr(err, 'msg', err)).splitlines()[0]}"
+    lines = [line.strip() for line in str(err).splitlines()]
+    if "Config search path:" in lines:  # Hydra's list of where it looked: not what was wrong
+        lines = lines[: lines.index("Config search path:")]
+    lines = [line for line in lines if line and not line.startswith(("full_key:", "reference_type=", "object_type="))]
+    first = " ".join(lines) or type(err).__name__
+    cause = err.__cause__
+    if cause is not None and _is_config_error(err):
+        return f"{first.rstrip('.')}: {setting_error_line(cause)}"
+    return first if _is_config_error(err) else str(err)
+
+
+def run_recipe_main(main: Callable[[], Any]) -> None:
+    """Runs a recipe's ``@hydra.main`` function so that Hydra's own refusals (an unknown key, a value of the wrong
+    type for the schema, found while composing) end as one line through :func:`recipe_guard` too, not Hydra's
+    report: ``HYDRA_FULL_ERROR`` is set (unless already set) so that Hydra hands its errors on. The recipe's work
+    inside ``main`` runs in its own :func:`recipe_guard` (the one that names ``out_dir``).
+
+    Examples:
+        >>> def main():
+        ...     raise ValueError("dqn.lr must be a number, got 'abc'.")
+        >>> try:
+        ...     run_recipe_main(main)
+        ... except SystemExit as stop:
+        ...     print(stop.code)
+        2
+    """
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    with recipe_guard(None):
+        main()
 
 
 class _QuietConsole(logging.Filter):

@@ -81,19 +81,21 @@ def read_run_settings(out_dir: str | os.PathLike) -> dict[str, Any] | None:
 
 def settings_differences(recorded: Mapping[str, Any], now: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
     """``{name: (recorded value, value now)}`` for every setting that differs between two (nested or flattened)
-    settings; a setting missing on one side is ``None`` there.
+    settings; a setting missing on one side is ``None`` there, so a setting left out and one set to ``None`` (the
+    reader's default either way: how the recipes' schemas leave a key) do not differ.
 
     Examples:
         >>> settings_differences({"dqn": {"lr": 0.01, "gamma": 0.9}}, {"dqn.lr": 0.1, "dqn.gamma": 0.9, "seed": 1})
         {'dqn.lr': (0.01, 0.1), 'seed': (None, 1)}
+        >>> settings_differences({"dqn": {"lr": 0.01, "max_decisions": None}}, {"dqn.lr": 0.01})
+        {}
     """
     old, new = flatten_settings(recorded), flatten_settings(now)
-    missing = object()
     diffs = {}
     for name in sorted(set(old) | set(new)):
-        a, b = old.get(name, missing), new.get(name, missing)
+        a, b = old.get(name), new.get(name)
         if a != b:
-            diffs[name] = (None if a is missing else a, None if b is missing else b)
+            diffs[name] = (a, b)
     return diffs
 
 

@@ -1,13 +1,17 @@
-"""The settings of one Atari RAM cell (:class:`AtariConfig`), checked when they are read, and the recipe's Hydra
-schema (:func:`store_atari_config`)."""
+"""The settings of one Atari RAM cell (:class:`AtariConfig`), checked when they are read, the recipe's Hydra
+schema (:func:`store_atari_config`) and the check of its own keys (:func:`check_atari_recipe_settings`)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
 from torchrl_options.agents.dqn import DQNHyperParameters
+from torchrl_options.checks import check_choice, check_int
+from torchrl_options.experiments.atari.conditions import CONDITIONS
+from torchrl_options.experiments.recipe_config import check_seeds, check_sweep
 
-__all__ = ["AtariConfig", "store_atari_config"]
+__all__ = ["AtariConfig", "check_atari_recipe_settings", "store_atari_config"]
 
 
 @dataclass
@@ -259,3 +263,48 @@ def store_atari_config(group: str = "atari", name: str = "schema") -> None:
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(group=group, name=name, node=AtariConfig)
+
+
+def check_atari_recipe_settings(cfg: Mapping[str, Any]) -> AtariConfig:
+    """Checks the Atari recipe's own keys (``games``/``game``, ``seeds``, ``conditions``, the windows, ``sweep``)
+    and its ``atari`` section (:class:`AtariConfig`), before any work; returns the cell settings.
+
+    Raises:
+        ValueError: naming the first bad setting.
+
+    Examples:
+        >>> check_atari_recipe_settings({"games": ["Pooyan"], "seeds": 1, "atari": {"phase1_episodes": 5}}).phase1_episodes
+        5
+        >>> check_atari_recipe_settings({"games": ["Pooyan"], "seeds": 1, "sweep": {"backend": "slurm"}})
+        Traceback (most recent call last):
+        ...
+        ValueError: sweep.backend must be one of ('serial', 'local', 'ray'), got 'slurm'.
+    """
+    from torchrl_options.envs.atari import ATARI_GAMES
+
+    games = [cfg["game"]] if cfg.get("game") else cfg.get("games")
+    if isinstance(games, str) or not isinstance(games, (list, tuple)) or not games:
+        raise ValueError(f"games must be a non-empty list of games (or set game=...), got {games!r}.")
+    for game in games:
+        if not isinstance(game, str) or not game:
+            raise ValueError(f"games: {game!r} is not a game name (e.g. one of {list(ATARI_GAMES)}).")
+    check_seeds(cfg.get("seeds"))
+    conditions = cfg.get("conditions") or ["A", "H1"]
+    for c in conditions:
+        check_choice(c, "conditions", tuple(CONDITIONS))
+    for key in ("smooth_window", "final_window"):
+        check_int(cfg.get(key), key, minimum=1, allow_none=True)
+    sweep = dict(cfg.get("sweep") or {})
+    check_sweep(sweep.get("backend", "serial"), sweep.get("num_workers"), "sweep.")
+    check_int(sweep.get("threads_per_worker"), "sweep.threads_per_worker", minimum=1, allow_none=True)
+    try:
+        config = AtariConfig.from_dict(dict(cfg.get("atari") or {}))
+    except (TypeError, ValueError) as err:
+        raise ValueError(str(err) if str(err).startswith("unknown") else f"atari.{err}") from None
+    suffixes = [c for c in conditions if c.startswith("H1") and "s" in c[2:]]
+    if suffixes and config.discount_per != "step":
+        raise ValueError(
+            f"conditions {suffixes} learn option values from option suffixes, discounted per primitive step: they "
+            f"need atari.discount_per=step, got {config.discount_per!r}."
+        )
+    return config
