@@ -10,6 +10,7 @@ env, collector, exploration module and loss works unchanged on the augmented act
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -20,6 +21,7 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
+from torchrl_options.transforms.keys import FlagToState, done_keys_for, reset_key
 
 logger = logging.getLogger(__name__)
 
@@ -28,7 +30,7 @@ __all__ = ["OptionExecutor"]
 _NO_OPTION = -1
 # runtime caches kept in the instance __dict__ (as TorchRL's StepCounter does): rebuilt on demand, dropped by
 # empty_cache, set_container, clone and pickling
-_CACHES = ("_base_spec_cache", "_consts", "_direct_call_state")
+_CACHES = ("_base_spec_cache", "_consts", "_direct_call_state", "_done_plan_cache")
 
 
 def _level_key(name: str, level: int) -> str:
@@ -48,6 +50,14 @@ class OptionExecutor(Transform):
     state it lands in); the end of an episode (done, truncated or reset) also ends it. The step after a
     termination, and the first step of every episode, is a *decision*: the policy's action is used.
     Fox et al., 2017, sections 1, 3.4 and 5.
+
+    **Done entries**: as TorchRL's :class:`~torchrl.envs.transforms.StepCounter`, the executor follows every
+    done entry of the env (by default the ``"done"`` next to each of its reset keys: the root ``"done"``, and
+    nested ones such as ``("agents", "done")`` in a multi-agent env), each with the ``"_reset"`` next to it. Any
+    of them ends the option of the envs (or agents) it covers, and a reset starts afresh exactly the entries
+    whose ``"_reset"`` is set. A done entry coarser than the action (a root ``"done"`` ``[*B, 1]`` for per-agent
+    actions ``[*B, n_agents]``) covers all the agents of its env; a finer one (per-agent dones for a root action)
+    ends the option when any of its agents is done.
 
     ``options`` is any TensorDict module that reads the observation and writes ``option_logits``
     ``[..., K, A]`` and ``termination_logits`` ``[..., K]`` (a DDO options module or a hand-written one).
@@ -113,7 +123,10 @@ class OptionExecutor(Transform):
         level (int, optional): level of the executor in a hierarchy, 1 for the one closest to the env.
             Sets the default key names and ``lower_option_key``. Defaults to ``1``.
         action_key (NestedKey, optional): the action entry. Defaults to ``"action"``.
-        done_key (NestedKey, optional): the done entry ending options with episodes. Defaults to ``"done"``.
+        done_key (NestedKey or list of NestedKey, optional): the done entries ending options with episodes. A
+            string is a leaf name looked up next to each of the env's reset keys (``"done"``: the root one and
+            every nested one, see above); a tuple names one nested entry; a list names exactly the entries it
+            holds (``["done"]``: the root one only). Defaults to ``"done"``.
         option_key (NestedKey, optional): the running-option state entry.
         executed_action_key (NestedKey, optional): the executed-action record.
         executed_option_key (NestedKey, optional): the executed-option record.
@@ -161,7 +174,7 @@ class OptionExecutor(Transform):
         greedy: bool = False,
         level: int = 1,
         action_key: NestedKey = "action",
-        done_key: NestedKey = "done",
+        done_key: NestedKey | Sequence[NestedKey] = "done",
         option_key: NestedKey | None = None,
         executed_action_key: NestedKey | None = None,
         executed_option_key: NestedKey | None = None,
@@ -200,7 +213,12 @@ class OptionExecutor(Transform):
             lower_option_key = None if level == 1 else _level_key("option", level - 1)
         self.lower_option_key = None if lower_option_key is None else unravel_key(lower_option_key)
         self.action_key = unravel_key(action_key)
-        self.done_key = unravel_key(done_key)
+        if isinstance(done_key, list):
+            if not done_key:
+                raise ValueError("OptionExecutor: done_key must name at least one done entry, got [].")
+            done_names = {f"done_key[{i}]": key for i, key in enumerate(done_key)}
+        else:
+            done_names = {"done_key": done_key}
         self.option_logits_key = unravel_key(option_logits_key)
         self.termination_logits_key = unravel_key(termination_logits_key)
         records = [
@@ -215,11 +233,13 @@ class OptionExecutor(Transform):
         # a record written over the action, the done flag, the lower level's option or the options' outputs
         named = {"option_key": self.option_key, "option_actions_key": self.option_actions_key,
                  "executed_action_key": self.executed_action_key, "executed_option_key": self.executed_option_key,
-                 "decision_key": self.decision_key, "action_key": self.action_key, "done_key": self.done_key,
+                 "decision_key": self.decision_key, "action_key": self.action_key, **done_names,
                  "option_logits_key": self.option_logits_key, "termination_logits_key": self.termination_logits_key}
         if self.lower_option_key is not None:
             named["lower_option_key"] = self.lower_option_key
-        check_distinct_keys(named, "OptionExecutor")  # fmt: skip
+        named = check_distinct_keys(named, "OptionExecutor")  # fmt: skip
+        done_keys = [named[name] for name in done_names]
+        self.done_key: NestedKey | list[NestedKey] = done_keys if isinstance(done_key, list) else done_keys[0]
         k = getattr(options, "num_options", None)
         if isinstance(k, int) and not isinstance(k, bool) and k != num_options:
             raise ValueError(f"OptionExecutor: num_options={num_options} but the options module has num_options={k}.")
@@ -317,6 +337,7 @@ class OptionExecutor(Transform):
         parent = self.parent
         if parent is not None:  # a wrong action spec or missing inputs fail here, when the executor is appended
             spec = self._base_action_spec()
+            self._done_plan()
             self._check_observation_keys(parent.observation_spec)
             a = getattr(self.options, "num_actions", None)
             if isinstance(a, int) and not isinstance(a, bool) and a != spec.n:
@@ -324,6 +345,43 @@ class OptionExecutor(Transform):
                     f"OptionExecutor (level {self.level}): the options choose among num_actions={a} actions, but the "
                     f"env below the executor has {spec.n} ({self.action_key!r}); options of level j choose among the "
                     "actions of the env with the levels below j."
+                )
+
+    @property
+    def done_keys(self) -> list[NestedKey]:
+        """The done entries the executor follows in its env (``done_key`` looked up in the env's done spec)."""
+        return [key for key, _, _ in self._done_plan()]
+
+    def _done_plan(self) -> list[tuple[NestedKey, NestedKey, FlagToState]]:
+        """``(done key, its reset key, the map of its flags onto the executor's state)`` per followed done entry."""
+        plan = self.__dict__.get("_done_plan_cache")
+        if plan is None:
+            parent = self.parent
+            if parent is None:
+                raise RuntimeError("OptionExecutor must be appended to an environment.")
+            done_spec = parent.full_done_spec
+            state_shape = self._base_action_spec().shape
+            keys = done_keys_for(self.done_key, list(done_spec.keys(True, True)), parent.reset_keys, "OptionExecutor")
+            plan = [(key, reset_key(key), FlagToState(done_spec[key].shape, state_shape, key, "OptionExecutor"))
+                    for key in keys]  # fmt: skip
+            self._check_state_nodes(keys)
+            self.__dict__["_done_plan_cache"] = plan
+        return plan
+
+    def _check_state_nodes(self, done_keys: list[NestedKey]) -> None:
+        """The state entries must lie under the node of a followed done entry: TorchRL merges a partial reset node
+        by node (``"_reset"`` at ``(*node, "_reset")`` updates the entries under ``node``), so a state entry outside
+        every such node would keep its value from before the reset."""
+        nodes = [() if isinstance(key, str) else key[:-1] for key in done_keys]
+        for name, key in (("option_key", self.option_key), ("option_actions_key", self.option_actions_key),
+                          ("executed_action_key", self.executed_action_key),
+                          ("executed_option_key", self.executed_option_key), ("decision_key", self.decision_key)):
+            path = () if isinstance(key, str) else key[:-1]
+            if not any(path[: len(node)] == node for node in nodes):
+                raise ValueError(
+                    f"OptionExecutor: the state entry {key!r} ({name}) lies outside every node of the done entries "
+                    f"it follows ({done_keys}): TorchRL would not reset it with them. Put it next to them, e.g. "
+                    f"{name}={(*nodes[0], key if isinstance(key, str) else key[-1])!r}."
                 )
 
     def empty_cache(self) -> None:
@@ -723,11 +781,13 @@ class OptionExecutor(Transform):
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
             terminate = terminate & self._lower_ready(next_tensordict, terminate.shape)
-        # the end of an episode ends the option too; option == -1 stays -1
-        done = next_tensordict.get(self.done_key, None)
-        if done is None:
-            raise ValueError(f"OptionExecutor: the env's output has no done entry {self.done_key!r} (done_key).")
-        ends = terminate | (done if done.shape == terminate.shape else done.reshape(terminate.shape))
+        # the end of an episode (any followed done entry) ends the option too; option == -1 stays -1
+        ends = terminate
+        for done_key, _, to_state in self._done_plan():
+            done = next_tensordict.get(done_key, None)
+            if done is None:
+                raise ValueError(f"OptionExecutor: the env's output has no done entry {done_key!r} (done_key).")
+            ends = ends | to_state(done)
         next_tensordict.set(self.option_key, torch.where(ends, consts.no_option, option))
         next_tensordict.set(self.option_actions_key, option_actions)
         next_tensordict.set(self.executed_action_key, tensordict.get(self.executed_action_key))
@@ -746,9 +806,7 @@ class OptionExecutor(Transform):
             consts = self._constants(device)
         self._raise_deferred(consts, wait=True)  # resets already wait for the device (done.any())
         option_actions, _ = self._evaluate_options(tensordict_reset, consts)
-        reset = tensordict.get(_reset_key(self.done_key), None) if tensordict is not None else None
-        if reset is not None and reset.shape != shape:
-            reset = reset.reshape(shape)
+        reset = self._reset_mask(tensordict)
         # a new episode starts with a decision; the records are empty (-1 / False) until its first step. Only
         # envs flagged by "_reset" change (TorchRL also keeps the entries of the other envs after _reset)
         entries = (
@@ -773,6 +831,21 @@ class OptionExecutor(Transform):
         if consts.deferred is not None:
             consts.deferred.publish()
         return tensordict_reset
+
+    def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor | None:
+        """The state entries a reset starts afresh: those flagged by the ``"_reset"`` of any followed done entry,
+        mapped onto the state's shape; ``None`` (all of them) when a reset entry is missing (as for TorchRL's
+        ``StepCounter``)."""
+        if tensordict is None:
+            return None
+        mask = None
+        for _, key, to_state in self._done_plan():
+            flag = tensordict.get(key, None)
+            if flag is None:
+                return None
+            flag = to_state(flag)
+            mask = flag if mask is None else mask | flag
+        return mask
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise NotImplementedError(
@@ -863,10 +936,5 @@ def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> 
     return table.reshape(consts.n, consts.K)[consts.arange, option.reshape(-1)].view(consts.shape)
 
 
-def _sibling_key(key: NestedKey, name: str) -> NestedKey:
-    """``name`` next to ``key``: ``"_reset"`` for ``"done"``, ``(..., "_reset")`` for ``(..., "done")``."""
-    return name if isinstance(key, str) else (*key[:-1], name)
-
-
-def _reset_key(done_key: NestedKey) -> NestedKey:
-    return _sibling_key(done_key, "_reset")
+# kept for DecisionCounter until it imports the public helpers of ``keys``
+from torchrl_options.transforms.keys import reset_key as _reset_key, sibling_key as _sibling_key  # noqa: E402,F401
