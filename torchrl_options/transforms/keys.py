@@ -90,12 +90,16 @@ def done_keys_for(
     return found
 
 
+def _without_trailing_one(shape: torch.Size) -> torch.Size:
+    return shape[:-1] if len(shape) and shape[-1] == 1 else shape
+
+
 class FlagToState:
     """Maps a boolean flag of one shape (a done or ``"_reset"`` entry) onto a state entry of another shape.
 
     The flag has the shape ``flag_shape`` of its done spec (usually ``[*B, 1]``, or ``[*B, n_agents, 1]`` for an
     agent-level one), the state the shape ``state_shape`` (a transform's entry, e.g. the shape of the action).
-    Flags with as many elements are reshaped; a coarser flag (its dims, trailing ``1`` dropped, a prefix of the
+    Flags with as many elements are reshaped; a coarser flag (its dims, a trailing ``1`` dropped, a prefix of the
     state's: a root done for a per-agent state) is broadcast over the state's extra dims; a finer one (the
     state's dims a prefix of its own: a per-agent done for a root state) is reduced with ``any`` over its extra
     dims, as TorchRL reduces a finer ``"_reset"`` when it merges a partial reset.
@@ -117,17 +121,17 @@ class FlagToState:
     def __init__(self, flag_shape: Sequence[int], state_shape: Sequence[int], key: NestedKey, owner: str):
         flag_shape, state_shape = torch.Size(flag_shape), torch.Size(state_shape)
         self.state_shape = state_shape
-        core = flag_shape[:-1] if len(flag_shape) and flag_shape[-1] == 1 else flag_shape
+        core, state_core = _without_trailing_one(flag_shape), _without_trailing_one(state_shape)
         if flag_shape == state_shape:
             self.mode = "same"
         elif flag_shape.numel() == state_shape.numel():
             self.mode = "reshape"
-        elif len(core) < len(state_shape) and state_shape[: len(core)] == core:
+        elif len(core) < len(state_core) and state_core[: len(core)] == core:
             self.mode = "broadcast"
             self.view = torch.Size((*core, *(1,) * (len(state_shape) - len(core))))
-        elif len(core) > len(state_shape) and core[: len(state_shape)] == state_shape:
+        elif len(core) > len(state_core) and core[: len(state_core)] == state_core:
             self.mode = "any"
-            self.core = core
+            self.core, self.kept = core, len(state_core)
         else:
             raise ValueError(
                 f"{owner}: the done entry {key!r} has shape {tuple(flag_shape)}, which does not match the "
@@ -142,7 +146,7 @@ class FlagToState:
         if mode == "broadcast":
             return flag.reshape(self.view).expand(self.state_shape)
         if mode == "any":
-            return flag.reshape(self.core).flatten(len(self.state_shape)).any(-1)
+            return flag.reshape(self.core).flatten(self.kept).any(-1).reshape(self.state_shape)
         return flag.reshape(self.state_shape)
 
     def __repr__(self) -> str:

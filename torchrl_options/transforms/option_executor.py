@@ -21,7 +21,7 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
-from torchrl_options.transforms.keys import FlagToState, done_keys_for, reset_key
+from torchrl_options.transforms.keys import FlagToState, done_keys_for, level_key, reset_key
 
 logger = logging.getLogger(__name__)
 
@@ -31,10 +31,6 @@ _NO_OPTION = -1
 # runtime caches kept in the instance __dict__ (as TorchRL's StepCounter does): rebuilt on demand, dropped by
 # empty_cache, set_container, clone and pickling
 _CACHES = ("_base_spec_cache", "_consts", "_direct_call_state", "_done_plan_cache")
-
-
-def _level_key(name: str, level: int) -> str:
-    return name if level == 1 else f"{name}_{level}"
 
 
 class OptionExecutor(Transform):
@@ -204,13 +200,13 @@ class OptionExecutor(Transform):
                     f"[..., K, A] and 'termination_logits' [..., K]); its out_keys are {out_keys}."
                 )
         in_keys = getattr(options, "in_keys", None)
-        self.option_key = unravel_key(option_key or _level_key("option", level))
-        self.executed_action_key = unravel_key(executed_action_key or _level_key("executed_action", level))
-        self.executed_option_key = unravel_key(executed_option_key or _level_key("executed_option", level))
-        self.decision_key = unravel_key(decision_key or _level_key("option_decision", level))
-        self.option_actions_key = unravel_key(option_actions_key or _level_key("option_actions", level))
+        self.option_key = unravel_key(option_key or level_key("option", level))
+        self.executed_action_key = unravel_key(executed_action_key or level_key("executed_action", level))
+        self.executed_option_key = unravel_key(executed_option_key or level_key("executed_option", level))
+        self.decision_key = unravel_key(decision_key or level_key("option_decision", level))
+        self.option_actions_key = unravel_key(option_actions_key or level_key("option_actions", level))
         if lower_option_key == "auto":
-            lower_option_key = None if level == 1 else _level_key("option", level - 1)
+            lower_option_key = None if level == 1 else level_key("option", level - 1)
         self.lower_option_key = None if lower_option_key is None else unravel_key(lower_option_key)
         self.action_key = unravel_key(action_key)
         if isinstance(done_key, list):
@@ -935,6 +931,3 @@ def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> 
         return table[consts.arange, option]
     return table.reshape(consts.n, consts.K)[consts.arange, option.reshape(-1)].view(consts.shape)
 
-
-# kept for DecisionCounter until it imports the public helpers of ``keys``
-from torchrl_options.transforms.keys import reset_key as _reset_key, sibling_key as _sibling_key  # noqa: E402,F401
