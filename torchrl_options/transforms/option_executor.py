@@ -10,12 +10,12 @@ env, collector, exploration module and loss works unchanged on the augmented act
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
-from typing import NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
@@ -30,7 +30,7 @@ __all__ = ["OptionExecutor"]
 _NO_OPTION = -1
 # runtime caches kept in the instance __dict__ (as TorchRL's StepCounter does): rebuilt on demand, dropped by
 # empty_cache, set_container, clone and pickling
-_CACHES = ("_base_spec_cache", "_consts", "_direct_call_state", "_done_plan_cache")
+_CACHES = ("_base_spec_cache", "_consts", "_compiled_options", "_done_plan_cache")
 
 
 class OptionExecutor(Transform):
@@ -134,6 +134,11 @@ class OptionExecutor(Transform):
         option_logits_key (NestedKey, optional): output of ``options``. Defaults to ``"option_logits"``.
         termination_logits_key (NestedKey, optional): output of ``options``. Defaults to
             ``"termination_logits"``.
+        compile_options (bool or dict, optional): call the options through ``torch.compile(options, **kwargs)``
+            (``True``: torch's defaults; a dict: the keyword arguments, e.g. ``{"backend": "eager"}``), compiled on
+            the first call in each process. On CPU it pays only over long runs: compiling takes seconds (a
+            minute with the default backend), and saves tens of microseconds per env step
+            (``benchmarks/bench_option_executor.py --compile``). Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -179,6 +184,7 @@ class OptionExecutor(Transform):
         lower_option_key: NestedKey | None | str = "auto",
         option_logits_key: NestedKey = "option_logits",
         termination_logits_key: NestedKey = "termination_logits",
+        compile_options: bool | Mapping[str, Any] = False,
     ):
         if isinstance(num_options, bool) or not isinstance(num_options, int) or num_options < 1:
             raise ValueError(f"OptionExecutor: num_options must be a positive int, got {num_options!r}.")
@@ -246,6 +252,12 @@ class OptionExecutor(Transform):
         self.greedy = greedy
         self.level = level
         self._options_in_keys = None if in_keys is None else [unravel_key(k) for k in in_keys]
+        if not isinstance(compile_options, (bool, Mapping)):
+            raise TypeError(
+                "OptionExecutor: compile_options must be a bool or a dict of torch.compile keyword arguments, got "
+                f"{compile_options!r}."
+            )
+        self.compile_options = compile_options if isinstance(compile_options, bool) else dict(compile_options)
         self._seed: int | None = None
 
     # ------------------------------------------------------------------ specs
@@ -517,36 +529,48 @@ class OptionExecutor(Transform):
     def _run_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """The options' ``(option_logits, termination_logits)`` at the state of ``tensordict``, without gradients.
 
-        Once :meth:`_direct_call` has shown that ``options.module`` can be called on the input tensors directly,
-        that call is made here with no other work (collectors already run without gradients).
+        The options module is called through its public TensorDict call, on a tensordict holding the entries it
+        reads (so its outputs never land in the env's data); compiled first when ``compile_options`` asks for it.
         """
-        state = self.__dict__.get("_direct_call_state")
-        options = self.options
-        if state is not None and state[1] is not None and state[0] is options:
-            inputs = [tensordict.get(key, None) for key in self._options_in_keys]
-            for x in inputs:
-                if x is None:
-                    break  # the full path says which input is missing
-            else:
-                try:
-                    if torch.is_grad_enabled():
-                        with torch.no_grad():
-                            out = options.module(*inputs)
-                    else:
-                        out = options.module(*inputs)
-                except RuntimeError as err:
-                    raise self._options_error(tensordict, err) from err
-                return out[state[1]], out[state[2]]
-        with torch.no_grad():
-            return self._call_options(tensordict)
-
-    def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        keys = self._options_in_keys
+        if keys is None:
+            inputs = tensordict.copy()
+        else:
+            try:
+                inputs = tensordict.select(*keys)
+            except KeyError:
+                missing = [key for key in keys if tensordict.get(key, None) is None]
+                raise ValueError(
+                    f"OptionExecutor: the options module reads {missing}, missing from the env's output (it has "
+                    f"{list(tensordict.keys(True, True))})."
+                ) from None
+        options = self.__dict__.get("_compiled_options")
+        if options is None:
+            options = self._options_call()
         try:
-            return self._call_options_unchecked(tensordict)
+            if torch.is_grad_enabled():
+                with torch.no_grad():
+                    out = options(inputs)
+            else:
+                out = options(inputs)
         except (RuntimeError, ValueError) as err:  # e.g. options built for another observation size: say so
-            if str(err).startswith("OptionExecutor"):  # the executor's own check
-                raise
             raise self._options_error(tensordict, err) from err
+        logits, term = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
+        if logits is None or term is None:
+            raise ValueError(
+                f"OptionExecutor: the options module did not write {self.option_logits_key!r} and "
+                f"{self.termination_logits_key!r}; it wrote {list(out.keys(True, True))}."
+            )
+        return logits, term
+
+    def _options_call(self) -> TensorDictModuleBase:
+        """The options module, or its ``torch.compile`` (kept as a runtime cache) with ``compile_options``."""
+        if not self.compile_options:
+            return self.options
+        kwargs = {} if self.compile_options is True else dict(self.compile_options)
+        compiled = torch.compile(self.options, **kwargs)
+        self.__dict__["_compiled_options"] = compiled
+        return compiled
 
     def _options_error(self, tensordict: TensorDictBase, err: Exception) -> ValueError:
         keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
@@ -558,71 +582,6 @@ class OptionExecutor(Transform):
             f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
             f"the module said: {err}"
         )
-
-    def _call_options_unchecked(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        keys = self._options_in_keys
-        if keys is not None:
-            inputs = [tensordict.get(key, None) for key in keys]
-            missing = [key for key, x in zip(keys, inputs) if x is None]
-            if missing:
-                raise ValueError(
-                    f"OptionExecutor: the options module reads {missing}, missing from the env's output (it has "
-                    f"{list(tensordict.keys(True, True))})."
-                )
-            direct = self._direct_call(tensordict, inputs)
-            if direct is not None:
-                return direct
-            out = self.options(tensordict.select(*keys))
-        else:
-            out = self.options(tensordict.copy())
-        logits, term = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
-        if logits is None or term is None:
-            raise ValueError(
-                f"OptionExecutor: the options module did not write {self.option_logits_key!r} and "
-                f"{self.termination_logits_key!r}; it wrote {list(out.keys(True, True))}."
-            )
-        return logits, term
-
-    def _direct_call(
-        self, tensordict: TensorDictBase, inputs: list[torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The outputs of a plain ``TensorDictModule`` from its ``module`` called on the input tensors.
-
-        ``TensorDictModule.forward`` wraps every output in a TensorDict, which costs more than a small MLP inside an
-        env step. For a plain ``TensorDictModule`` (no ``method``), the first call runs both ways and compares the
-        outputs: when they agree, later calls go through ``options.module`` directly (the same computation: positional
-        inputs in ``in_keys`` order, outputs in ``out_keys_source`` order); otherwise (e.g. inputs mapped to keyword
-        arguments in another order, a stochastic module) they keep going through the TensorDict call.
-        """
-        options = self.options
-        state = self.__dict__.get("_direct_call_state")
-        if state is not None and state[0] is options:
-            if state[1] is None:
-                return None
-            out = options.module(*inputs)
-            return out[state[1]], out[state[2]]
-        positions = None
-        if type(options) is TensorDictModule and options.method is None and not options.method_kwargs:
-            out_keys = [unravel_key(k) for k in options.out_keys_source]
-            if self.option_logits_key not in out_keys or self.termination_logits_key not in out_keys:
-                self.__dict__["_direct_call_state"] = (options, None, None)
-                return None
-            i, j = out_keys.index(self.option_logits_key), out_keys.index(self.termination_logits_key)
-            out = options(tensordict.select(*self._options_in_keys))
-            expected = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
-            try:
-                direct = options.module(*inputs)
-                direct = (direct[i], direct[j]) if isinstance(direct, tuple) and len(direct) == len(out_keys) else None
-            except Exception:  # noqa: BLE001 - any failure means "not callable that way"
-                direct = None
-            if (
-                direct is not None
-                and all(isinstance(x, torch.Tensor) for x in (*direct, *expected))
-                and all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(direct, expected))
-            ):
-                positions = (i, j)
-        self.__dict__["_direct_call_state"] = (options, *(positions or (None, None)))
-        return direct if positions is not None else None
 
     # ---------------------------------------------------------------- checks
     def _check_options_outputs(
