@@ -17,7 +17,14 @@ from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
-from torchrl_options.transforms.keys import FlagToState, done_keys_for, level_key, reset_key, sibling_key
+from torchrl_options.transforms.keys import (
+    FlagToState,
+    done_key_arguments,
+    followed_done_entries,
+    level_key,
+    reset_key,
+    sibling_key,
+)
 
 __all__ = ["DecisionCounter"]
 
@@ -135,12 +142,7 @@ class DecisionCounter(Transform):
         self.decision_key = None if decision_key is None else unravel_key(decision_key)
         self.option_keys: list[NestedKey] = list(option_keys or [])
         self.count_key = unravel_key(count_key)
-        if isinstance(done_key, list):
-            if not done_key:
-                raise ValueError("DecisionCounter: done_key must name at least one done entry, got [].")
-            done_names = {f"done_key[{i}]": key for i, key in enumerate(done_key)}
-        else:
-            done_names = {"done_key": done_key}
+        done_names = done_key_arguments(done_key, "DecisionCounter")
         # the count it writes must not land on an entry it reads (the flags, the decision record, the options)
         named = {"count_key": self.count_key, **done_names}
         if self.decision_key is not None:
@@ -179,11 +181,7 @@ class DecisionCounter(Transform):
         one's map is None (it has the count's shape)."""
         plan = self.__dict__.get("_done_plan_cache")
         if plan is None:
-            parent = self.parent
-            if parent is None:
-                raise RuntimeError("DecisionCounter must be appended to an environment.")
-            done_spec = parent.full_done_spec
-            keys = done_keys_for(self.done_key, list(done_spec.keys(True, True)), parent.reset_keys, "DecisionCounter")
+            keys, done_spec = followed_done_entries(self, self.done_key, "DecisionCounter")
             shape = done_spec[keys[0]].shape
             plan = [(keys[0], self._truncated_key or sibling_key(keys[0], "truncated"), None)] + [
                 (key, sibling_key(key, "truncated"), FlagToState(shape, done_spec[key].shape, keys[0], "DecisionCounter"))

@@ -10,11 +10,21 @@ shape.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from tensordict.utils import NestedKey, unravel_key
+from torchrl.data import Composite
 
-__all__ = ["FlagToState", "done_keys_for", "level_key", "reset_key", "sibling_key"]
+__all__ = [
+    "FlagToState",
+    "done_key_arguments",
+    "done_keys_for",
+    "followed_done_entries",
+    "level_key",
+    "reset_key",
+    "sibling_key",
+]
 
 
 def level_key(name: str, level: int) -> str:
@@ -46,6 +56,24 @@ def reset_key(done_key: NestedKey) -> NestedKey:
         ('_reset', ('agent', '_reset'))
     """
     return sibling_key(done_key, "_reset")
+
+
+def done_key_arguments(done_key: NestedKey | Sequence[NestedKey], owner: str) -> dict[str, NestedKey]:
+    """A transform's ``done_key`` argument by name, for its key checks: ``{"done_key": key}``, or
+    ``{"done_key[i]": key}`` for a list.
+
+    Raises:
+        ValueError: an empty list.
+
+    Examples:
+        >>> done_key_arguments("done", "X"), done_key_arguments(["done", ("agents", "done")], "X")
+        ({'done_key': 'done'}, {'done_key[0]': 'done', 'done_key[1]': ('agents', 'done')})
+    """
+    if not isinstance(done_key, list):
+        return {"done_key": done_key}
+    if not done_key:
+        raise ValueError(f"{owner}: done_key must name at least one done entry, got [].")
+    return {f"done_key[{i}]": key for i, key in enumerate(done_key)}
 
 
 def done_keys_for(
@@ -92,6 +120,23 @@ def done_keys_for(
 
 def _without_trailing_one(shape: torch.Size) -> torch.Size:
     return shape[:-1] if len(shape) and shape[-1] == 1 else shape
+
+
+def followed_done_entries(
+    transform: Any, done_key: NestedKey | Sequence[NestedKey], owner: str
+) -> tuple[list[NestedKey], Composite]:
+    """The done entries a transform follows in the env it is appended to (``done_key`` read by
+    :func:`done_keys_for` against that env's done spec and reset keys), and that done spec.
+
+    Raises:
+        RuntimeError: a transform not appended to an env.
+        ValueError: a ``done_key`` naming no done entry of the env.
+    """
+    parent = transform.parent
+    if parent is None:
+        raise RuntimeError(f"{owner} must be appended to an environment.")
+    done_spec = parent.full_done_spec
+    return done_keys_for(done_key, list(done_spec.keys(True, True)), parent.reset_keys, owner), done_spec
 
 
 class FlagToState:

@@ -21,7 +21,7 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
-from torchrl_options.transforms.keys import FlagToState, done_keys_for, level_key, reset_key
+from torchrl_options.transforms.keys import FlagToState, done_key_arguments, followed_done_entries, level_key, reset_key
 
 logger = logging.getLogger(__name__)
 
@@ -215,12 +215,7 @@ class OptionExecutor(Transform):
             lower_option_key = None if level == 1 else level_key("option", level - 1)
         self.lower_option_key = None if lower_option_key is None else unravel_key(lower_option_key)
         self.action_key = unravel_key(action_key)
-        if isinstance(done_key, list):
-            if not done_key:
-                raise ValueError("OptionExecutor: done_key must name at least one done entry, got [].")
-            done_names = {f"done_key[{i}]": key for i, key in enumerate(done_key)}
-        else:
-            done_names = {"done_key": done_key}
+        done_names = done_key_arguments(done_key, "OptionExecutor")
         self.option_logits_key = unravel_key(option_logits_key)
         self.termination_logits_key = unravel_key(termination_logits_key)
         records = [
@@ -364,12 +359,8 @@ class OptionExecutor(Transform):
         """``(done key, its reset key, the map of its flags onto the executor's state)`` per followed done entry."""
         plan = self.__dict__.get("_done_plan_cache")
         if plan is None:
-            parent = self.parent
-            if parent is None:
-                raise RuntimeError("OptionExecutor must be appended to an environment.")
-            done_spec = parent.full_done_spec
+            keys, done_spec = followed_done_entries(self, self.done_key, "OptionExecutor")
             state_shape = self._base_action_spec().shape
-            keys = done_keys_for(self.done_key, list(done_spec.keys(True, True)), parent.reset_keys, "OptionExecutor")
             plan = [(key, reset_key(key), FlagToState(done_spec[key].shape, state_shape, key, "OptionExecutor"))
                     for key in keys]  # fmt: skip
             self._check_state_nodes(keys)
