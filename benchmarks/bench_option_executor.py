@@ -20,6 +20,10 @@ often.
 A third setup, the env with TorchRL's :class:`~torchrl.envs.transforms.StepCounter` appended instead of the
 executor, runs in the same rounds: the second table gives the overhead per batched env step (process CPU time,
 microseconds, over the env alone) of StepCounter and of the executor, and their ratio (issue 51 aims at most 2).
+``--options optionsmlp`` uses the package's :class:`~torchrl_options.modules.OptionsMLP` (the same network: one
+hidden layer of 64 ReLU units, shared heads), a TensorDict module that writes its outputs itself, in place of the
+plain ``TensorDictModule``, whose call (tensordict 0.14) converts every output with ``TensorDict.from_any``, which
+looks pandas up with ``importlib.util.find_spec`` each time (tens of microseconds where pandas is not imported).
 With ``--compile BACKEND`` a fourth setup runs the executor with ``compile_options={"backend": BACKEND}``
 (compiled before the rounds, in the warm-up batch).
 
@@ -29,6 +33,7 @@ Run::
     python benchmarks/bench_option_executor.py --rounds 9 --frames 32768 --envs randomwalk gridworld
     python benchmarks/bench_option_executor.py --rounds 3 --frames 8192 --breakdown   # where the time goes
     python benchmarks/bench_option_executor.py --rounds 5 --frames 8192 --compile eager  # + compile_options
+    python benchmarks/bench_option_executor.py --rounds 5 --frames 8192 --options optionsmlp
 """
 from __future__ import annotations
 
@@ -47,6 +52,7 @@ from torchrl.envs import EnvBase, SerialEnv, StepCounter
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 
 from torchrl_options.envs import GridWorldEnv
+from torchrl_options.modules import OptionsMLP
 from torchrl_options.transforms import OptionExecutor
 
 
@@ -129,11 +135,16 @@ def make_env(args, with_executor: bool | str, kind: str):
     if with_executor:
         obs_dim = env.observation_spec["observation"].shape[-1]
         num_actions = env.full_action_spec_unbatched["action"].n
-        options = TensorDictModule(
-            MLPOptions(obs_dim, args.num_options, num_actions),
-            in_keys=["observation"],
-            out_keys=["option_logits", "termination_logits"],
-        )
+        if args.options == "optionsmlp":  # the package's options module (what discovery returns), the same network
+            options = OptionsMLP(
+                obs_dim, num_actions, args.num_options, num_cells=64, activation="relu", architecture="shared"
+            )
+        else:
+            options = TensorDictModule(
+                MLPOptions(obs_dim, args.num_options, num_actions),
+                in_keys=["observation"],
+                out_keys=["option_logits", "termination_logits"],
+            )
         compile_options = {"backend": args.compile} if with_executor == "compiled" else False
         env = env.append_transform(OptionExecutor(options, num_options=args.num_options, compile_options=compile_options))
     return env
@@ -239,6 +250,12 @@ def main():
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--envs", nargs="+", default=list(ENV_KINDS), choices=ENV_KINDS)
+    parser.add_argument(
+        "--options",
+        default="tensordictmodule",
+        choices=("tensordictmodule", "optionsmlp"),
+        help="the options module: a plain TensorDictModule around an MLP (default), or the package's OptionsMLP",
+    )
     parser.add_argument(
         "--compile", default=None, metavar="BACKEND", help="also run the executor with compile_options={'backend': BACKEND}"
     )
