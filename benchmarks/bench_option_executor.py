@@ -146,7 +146,8 @@ def make_env(args, with_executor: bool | str, kind: str):
                 out_keys=["option_logits", "termination_logits"],
             )
         compile_options = {"backend": args.compile} if with_executor == "compiled" else False
-        env = env.append_transform(OptionExecutor(options, num_options=args.num_options, compile_options=compile_options))
+        executor = OptionExecutor(options, num_options=args.num_options, compile_options=compile_options)
+        env = env.append_transform(executor)
     return env
 
 
@@ -228,7 +229,7 @@ def breakdown(setups: dict, args) -> dict[str, float]:
             executor = next(t for t in env.transform.modules() if isinstance(t, OptionExecutor))
             for method in ("_inv_call", "_step", "_reset"):
                 timer.wrap(executor, method, "executor")
-            timer.wrap(executor.options.module, "forward", "options")
+            timer.wrap(getattr(executor.options, "module", executor.options), "forward", "options")
     fps = measure(setups, args)
     steps = (args.rounds * max(1, args.frames // args.frames_per_batch) + 1) * args.frames_per_batch / args.num_envs
     out = {key: 1e6 * total / steps for key, total in timer.totals.items()}
@@ -257,7 +258,10 @@ def main():
         help="the options module: a plain TensorDictModule around an MLP (default), or the package's OptionsMLP",
     )
     parser.add_argument(
-        "--compile", default=None, metavar="BACKEND", help="also run the executor with compile_options={'backend': BACKEND}"
+        "--compile",
+        default=None,
+        metavar="BACKEND",
+        help="also run the executor with compile_options={'backend': BACKEND}",
     )
     parser.add_argument(
         "--breakdown",

@@ -332,7 +332,8 @@ def test_two_agents_one_agent_done_ends_only_its_option():
 
 
 def test_explicit_done_keys_and_errors():
-    env = NestedDoneWalk().append_transform(nested_executor("agent", done_key=[("agent", "done"), ("agent", "terminated")]))
+    explicit = nested_executor("agent", done_key=[("agent", "done"), ("agent", "terminated")])
+    env = NestedDoneWalk().append_transform(explicit)
     assert env.transform.done_keys == [("agent", "done"), ("agent", "terminated")]
     with pytest.raises(ValueError, match=r"done_key 'finished' names no entry of the env's done spec"):
         NestedDoneWalk().append_transform(nested_executor("agent", done_key="finished"))

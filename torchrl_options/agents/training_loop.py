@@ -96,7 +96,8 @@ class CollectorTraining:
         ...         self.config = SimpleNamespace(total_frames=64, frames_per_batch=32, seed=0)
         ...         self.env = TransformedEnv(GridWorldEnv("four-rooms", seed=0), RewardSum())  # it counts steps
         ...         spec = self.env.action_spec
-        ...         self.actor = QValueActor(MLP(out_features=spec.n, num_cells=[8]), in_keys=["observation"], spec=spec)
+        ...         q_values = MLP(out_features=spec.n, num_cells=[8])
+        ...         self.actor = QValueActor(q_values, in_keys=["observation"], spec=spec)
         ...         self.device, self.frames, self.log, self.batches = torch.device("cpu"), 0, TrainingLog(), 0
         ...     def _collector_policy(self):
         ...         return self.actor
@@ -121,7 +122,9 @@ class CollectorTraining:
     frames: int
     log: TrainingLog
 
-    def train(self, total_frames: int | None = None, callback: Callable[[Any, TensorDictBase], Any] | None = None) -> TrainingLog:
+    def train(
+        self, total_frames: int | None = None, callback: Callable[[Any, TensorDictBase], Any] | None = None
+    ) -> TrainingLog:
         """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
 
         The budget is counted in whole collector batches: ``total_frames`` is rounded up to a multiple of

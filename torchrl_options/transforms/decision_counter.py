@@ -184,7 +184,7 @@ class DecisionCounter(Transform):
             keys, done_spec = followed_done_entries(self, self.done_key, "DecisionCounter")
             shape = done_spec[keys[0]].shape
             plan = [(keys[0], self._truncated_key or sibling_key(keys[0], "truncated"), None)] + [
-                (key, sibling_key(key, "truncated"), FlagToState(shape, done_spec[key].shape, keys[0], "DecisionCounter"))
+                (key, sibling_key(key, "truncated"), FlagToState(shape, done_spec[key].shape, key, "DecisionCounter"))
                 for key in keys[1:]
             ]
             self.__dict__["_done_plan_cache"] = plan
