@@ -17,11 +17,23 @@ two agree: everything runs in this process, single-threaded). Envs:
 Episode ends are random and independent of the actions in the random walks, so both setups reset equally
 often.
 
+A third setup, the env with TorchRL's :class:`~torchrl.envs.transforms.StepCounter` appended instead of the
+executor, runs in the same rounds: the second table gives the overhead per batched env step (process CPU time,
+microseconds, over the env alone) of StepCounter and of the executor, and their ratio (issue 51 aims at most 2).
+``--options optionsmlp`` uses the package's :class:`~torchrl_options.modules.OptionsMLP` (the same network: one
+hidden layer of 64 ReLU units, shared heads), a TensorDict module that writes its outputs itself, in place of the
+plain ``TensorDictModule``, whose call (tensordict 0.14) converts every output with ``TensorDict.from_any``, which
+looks pandas up with ``importlib.util.find_spec`` each time (tens of microseconds where pandas is not imported).
+With ``--compile BACKEND`` a fourth setup runs the executor with ``compile_options={"backend": BACKEND}``
+(compiled before the rounds, in the warm-up batch).
+
 Run::
 
     python benchmarks/bench_option_executor.py --rounds 5 --frames 8192   # the issue's setting
     python benchmarks/bench_option_executor.py --rounds 9 --frames 32768 --envs randomwalk gridworld
     python benchmarks/bench_option_executor.py --rounds 3 --frames 8192 --breakdown   # where the time goes
+    python benchmarks/bench_option_executor.py --rounds 5 --frames 8192 --compile eager  # + compile_options
+    python benchmarks/bench_option_executor.py --rounds 5 --frames 8192 --options optionsmlp
 """
 from __future__ import annotations
 
@@ -40,6 +52,7 @@ from torchrl.envs import EnvBase, SerialEnv, StepCounter
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 
 from torchrl_options.envs import GridWorldEnv
+from torchrl_options.modules import OptionsMLP
 from torchrl_options.transforms import OptionExecutor
 
 
@@ -113,17 +126,28 @@ def make_base_env(args, kind: str):
     return env
 
 
-def make_env(args, with_executor: bool, kind: str):
+
+
+def make_env(args, with_executor: bool | str, kind: str):
     env = make_base_env(args, kind)
+    if with_executor == "stepcounter":
+        return env.append_transform(StepCounter(max_steps=10**9))
     if with_executor:
         obs_dim = env.observation_spec["observation"].shape[-1]
         num_actions = env.full_action_spec_unbatched["action"].n
-        options = TensorDictModule(
-            MLPOptions(obs_dim, args.num_options, num_actions),
-            in_keys=["observation"],
-            out_keys=["option_logits", "termination_logits"],
-        )
-        env = env.append_transform(OptionExecutor(options, num_options=args.num_options))
+        if args.options == "optionsmlp":  # the package's options module (what discovery returns), the same network
+            options = OptionsMLP(
+                obs_dim, num_actions, args.num_options, num_cells=64, activation="relu", architecture="shared"
+            )
+        else:
+            options = TensorDictModule(
+                MLPOptions(obs_dim, args.num_options, num_actions),
+                in_keys=["observation"],
+                out_keys=["option_logits", "termination_logits"],
+            )
+        compile_options = {"backend": args.compile} if with_executor == "compiled" else False
+        executor = OptionExecutor(options, num_options=args.num_options, compile_options=compile_options)
+        env = env.append_transform(executor)
     return env
 
 
@@ -205,7 +229,7 @@ def breakdown(setups: dict, args) -> dict[str, float]:
             executor = next(t for t in env.transform.modules() if isinstance(t, OptionExecutor))
             for method in ("_inv_call", "_step", "_reset"):
                 timer.wrap(executor, method, "executor")
-            timer.wrap(executor.options.module, "forward", "options")
+            timer.wrap(getattr(executor.options, "module", executor.options), "forward", "options")
     fps = measure(setups, args)
     steps = (args.rounds * max(1, args.frames // args.frames_per_batch) + 1) * args.frames_per_batch / args.num_envs
     out = {key: 1e6 * total / steps for key, total in timer.totals.items()}
@@ -228,6 +252,18 @@ def main():
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--envs", nargs="+", default=list(ENV_KINDS), choices=ENV_KINDS)
     parser.add_argument(
+        "--options",
+        default="tensordictmodule",
+        choices=("tensordictmodule", "optionsmlp"),
+        help="the options module: a plain TensorDictModule around an MLP (default), or the package's OptionsMLP",
+    )
+    parser.add_argument(
+        "--compile",
+        default=None,
+        metavar="BACKEND",
+        help="also run the executor with compile_options={'backend': BACKEND}",
+    )
+    parser.add_argument(
         "--breakdown",
         action="store_true",
         help="also time (process CPU time per env step, instrumented run) the policy, the executor and its options",
@@ -236,10 +272,10 @@ def main():
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 
-    rows = []
+    rows, overheads = [], []
     for kind in args.envs:
         setups = {}
-        for with_executor in (False, True):
+        for with_executor in (False, True, "stepcounter", *(("compiled",) if args.compile else ())):
             env = make_env(args, with_executor, kind)
             setups[with_executor] = (env, make_policy(env, args))
         fps = measure(setups, args)
@@ -249,6 +285,14 @@ def main():
         per_round = [o / b for o, b in zip(wall[True], wall[False])]
         cpu_ratio = statistics.median(cpu[True]) / statistics.median(cpu[False])
         rows.append((kind, base, opt, opt / base, min(per_round), max(per_round), cpu_ratio))
+        # overhead per batched step over the env alone, CPU time: medians over rounds of the per-round differences
+        step_us = {k: [1e6 * args.num_envs / c for c in v] for k, v in cpu.items()}
+        counter = statistics.median(s - b for s, b in zip(step_us["stepcounter"], step_us[False]))
+        ours = statistics.median(o - b for o, b in zip(step_us[True], step_us[False]))
+        compiled = (
+            statistics.median(o - b for o, b in zip(step_us["compiled"], step_us[False])) if args.compile else None
+        )
+        overheads.append((kind, statistics.median(step_us[False]), counter, ours, ours / counter, compiled))
 
     print(
         f"Collector frames/s, {args.num_envs} batched envs, K={args.num_options} MLP options, "
@@ -265,6 +309,24 @@ def main():
         print(
             f"| {name:<24} | {base:>16.0f} | {opt:>13.0f} | {ratio:>5.2f} | {spread:>16} | {cpu_ratio:>16.2f} |"
         )
+
+    print(
+        "\nOverhead per batched env step over the env alone (process CPU time, microseconds, median over rounds): "
+        "TorchRL's StepCounter and the OptionExecutor, same rounds"
+    )
+    header = (
+        f"| {'env (16 batched)':<24} | {'env alone':>9} | {'StepCounter':>11} | {'OptionExecutor':>14} "
+        f"| {'executor / StepCounter':>22} |"
+    )
+    if args.compile:
+        header += f" {'compiled executor':>17} | {'compiled / StepCounter':>22} |"
+    print(header)
+    print("|" + "|".join("-" * (len(c)) for c in header.split("|")[1:-1]) + "|")
+    for name, alone, counter, ours, ratio, compiled in overheads:
+        line = f"| {name:<24} | {alone:>9.0f} | {counter:>11.0f} | {ours:>14.0f} | {ratio:>22.2f} |"
+        if compiled is not None:
+            line += f" {compiled:>17.0f} | {compiled / counter:>22.2f} |"
+        print(line)
 
 
     if args.breakdown:

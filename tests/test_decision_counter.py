@@ -234,3 +234,58 @@ def test_without_an_executor_upstream():
 def test_no_forward_mode():
     with pytest.raises(NotImplementedError, match="environment step"):
         DecisionCounter(3)(TensorDict({}, []))
+
+
+# ------------------------------------------------------------------------- nested and multi-agent done entries
+def test_two_agents_count_at_the_root_and_truncate_every_done_entry():
+    """A root count [N, 1] over per-agent decisions [N, 2]: a step is a decision when an agent decides, over once
+    no agent's option runs; the truncation is written at the root and carried to ("agents", "done" / "truncated")."""
+    from test_option_executor_done_keys import two_agent_env
+
+    env = two_agent_env(num_envs=3, end_prob=0.05).append_transform(
+        DecisionCounter(3, decision_key=("agents", "option_decision"), option_keys=[("agents", "option")])
+    )
+    check_env_specs(env)
+    counter = env.transform[-1]
+    assert counter.done_keys == ["done", ("agents", "done")] and counter.truncated_key == "truncated"
+    torch.manual_seed(0)
+    collector = Collector(env, None, frames_per_batch=3 * 80, total_frames=3 * 80)
+    data = next(iter(collector))
+    collector.shutdown()
+    truncations = 0
+    for row in data.unbind(0):
+        nxt = row["next"]
+        count_in, count_out = row["decision_count"].reshape(-1), nxt["decision_count"].reshape(-1)
+        decision = nxt["agents", "option_decision"].any(-1)
+        over = (nxt["agents", "option"] < 0).all(-1)
+        truncated, done = nxt["truncated"].reshape(-1), nxt["done"].reshape(-1)
+        for t in range(row.shape[0]):
+            if t > 0:
+                assert int(count_in[t]) == (0 if done[t - 1] else int(count_out[t - 1])), f"step {t}"
+            assert int(count_out[t]) == int(count_in[t]) + int(decision[t]), f"step {t}"
+            assert bool(truncated[t]) == bool(count_out[t] >= 3 and over[t]), f"step {t}"
+            truncations += bool(truncated[t])
+        # the truncation reached every agent's done and truncated entries
+        assert (nxt["agents", "truncated"].reshape(-1, 2) == truncated.unsqueeze(-1)).all()
+        assert (nxt["agents", "done"].reshape(-1, 2)[truncated]).all()
+    assert truncations > 10
+
+
+def test_nested_done_key_count_next_to_it():
+    from test_option_executor_done_keys import nested_env
+
+    env = nested_env(num_envs=2, end_prob=0.0).append_transform(
+        DecisionCounter(
+            2,
+            decision_key=("agent", "option_decision"),
+            option_keys=[("agent", "option")],
+            count_key=("agent", "decision_count"),
+        )
+    )
+    check_env_specs(env)
+    assert env.transform[-1].truncated_key == ("agent", "truncated")
+    data = env.rollout(4, lambda td: td.set(("agent", "action"), torch.tensor([0, 1])), break_when_any_done=False)
+    # primitive actions only: every step is a decision, truncated after 2 steps, then a new episode
+    assert data["next", "agent", "decision_count"].reshape(2, -1).tolist() == [[1, 2, 1, 2]] * 2
+    assert data["next", "agent", "truncated"].reshape(2, -1).tolist() == [[False, True, False, True]] * 2
+    assert data["next", "agent", "done"].reshape(2, -1).tolist() == [[False, True, False, True]] * 2

@@ -142,16 +142,16 @@ def test_collector_is_given_the_env_device(monkeypatch):
     """TorchRL 0.14.1's Collector chooses its env-side CUDA synchronisation from the ``env_device`` argument alone;
     without it a CUDA policy's actions reach a CPU env unsynchronised (garbage actions, seen on an H100). The agent
     must therefore always name the env's device."""
-    import torchrl_options.agents.dqn as dqn_mod
+    import torchrl_options.agents.training_loop as loop_mod  # the agents' shared training loop builds the collector
 
     seen = {}
-    real = dqn_mod.Collector
+    real = loop_mod.Collector
 
     def spy(*args, **kwargs):
         seen.update(kwargs)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(dqn_mod, "Collector", spy)
+    monkeypatch.setattr(loop_mod, "Collector", spy)
     agent = seeded_dqn(
         lambda: Corridor(length=4, device="cpu"), OptionsDQNConfig(mode="actions", frames_per_batch=8, learning_starts=8)
     )

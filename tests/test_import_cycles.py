@@ -109,3 +109,40 @@ def test_no_import_cycles_in_the_package():
 def test_known_cycles_are_still_there(known):
     """A known exception that is gone must leave the list (so the list stays true)."""
     assert known in cycles(import_graph())
+
+
+def private_imports_in(name: str, source: str) -> list[tuple[str, str, str]]:
+    """``(module, imported module, name)`` for every private name (or name from a private module) that the module
+    ``name`` of source ``source`` imports from another module of the package, imports inside functions included."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("torchrl_options") and not node.level:
+            private_module = any(part.startswith("_") for part in node.module.split(".")[1:])
+            for alias in node.names:
+                if node.module != name and (private_module or alias.name.startswith("_")):
+                    found.append((name, node.module, alias.name))
+    return found
+
+
+def private_imports(subpackage: str) -> list[tuple[str, str, str]]:
+    """:func:`private_imports_in` over the modules of ``torchrl_options.<subpackage>``."""
+    return [
+        found
+        for name, path in _modules().items()
+        if name.startswith(f"torchrl_options.{subpackage}")
+        for found in private_imports_in(name, path.read_text())
+    ]
+
+
+def test_private_imports_are_found():
+    source = "from torchrl_options.a import b, _c\ndef f():\n    from torchrl_options._d import e\n"
+    assert private_imports_in("torchrl_options.x", source) == [
+        ("torchrl_options.x", "torchrl_options.a", "_c"),
+        ("torchrl_options.x", "torchrl_options._d", "e"),
+    ]
+
+
+@pytest.mark.parametrize("subpackage", ["transforms"])
+def test_no_private_imports(subpackage):
+    """What a module shares with another is public (issue 51 part 3): no ``from module import _name``."""
+    assert private_imports(subpackage) == []

@@ -634,9 +634,8 @@ def test_options_run_once_per_step():
     policy = scripted_policy([[LEFT, LEFT, A + 0, LEFT]] * 10)  # no env reaches the end: no reset
     data = env.rollout(10, policy=policy, break_when_any_done=False)
     assert not data["next", "done"].any()
-    # + the reset; + 1 the first time: the first call also checks that TensorDictModule's module gives the same
-    # outputs called directly (it is, from then on)
-    assert options.calls == 10 + 1 + 1
+    # + the reset
+    assert options.calls == 10 + 1
     # env 2 runs the option: right up to cell 4, then left (state-dependent actions from the reused outputs)
     assert data["next", "position"][2].squeeze(-1).tolist() == [1, 2, 3, 4, 3, 4, 3, 4, 3, 4]
 
@@ -681,3 +680,26 @@ def test_inference_mode_and_float64_options():
     for data in (rollout(torch.inference_mode), rollout(torch.no_grad, torch.float64)):
         for key in ("executed_action", "executed_option", "option_decision", "option"):
             assert (data["next", key] == expected["next", key]).all()
+
+
+# ------------------------------------------------------------------------------- the options' call
+def test_compiled_options_give_the_same_records():
+    """``compile_options``: the options run through ``torch.compile`` (the eager backend here: no C++ build); the
+    records are those of the plain TensorDict call, and the compiled module is a runtime cache, not pickled."""
+    import pickle
+
+    def rollout(compile_options):
+        env = corridor_with_executor(batch_size=[3], compile_options=compile_options)
+        with torch.random.fork_rng():
+            torch.manual_seed(0)
+            return env, env.rollout(30, break_when_any_done=False)
+
+    _, expected = rollout(False)
+    env, data = rollout({"backend": "eager"})
+    executor = env.transform
+    assert "_compiled_options" in executor.__dict__ and executor.compile_options == {"backend": "eager"}
+    for key in ("executed_action", "executed_option", "option_decision", "option"):
+        assert (data["next", key] == expected["next", key]).all()
+    assert "_compiled_options" not in pickle.loads(pickle.dumps(executor)).__dict__
+    with pytest.raises(TypeError, match="compile_options must be a bool or a dict"):
+        OptionExecutor(checkpoint_options(L), num_options=K, compile_options="eager")

@@ -13,7 +13,7 @@ import logging
 import math
 import os
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import torch
@@ -21,7 +21,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import (
     EnvBase,
@@ -38,6 +37,7 @@ from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate, ValueEstimators
 
 from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
 from torchrl_options.checks import check_bool, check_callable, check_int, check_nested_key
+from torchrl_options.agents.training_loop import CollectorTraining, TrainingLog, seed_executors
 from torchrl_options.agents.warm_start import widen_action_rows, widen_action_values
 from torchrl_options.data.intra_option import intra_option_transitions, option_suffix_transitions
 from torchrl_options.data.smdp import SMDPTransitions
@@ -237,38 +237,6 @@ def check_max_grad_norm(value: Any) -> None:
         raise ValueError(f"max_grad_norm must be None or > 0 (finite), got {value!r}.")
 
 
-@dataclass
-class TrainingLog:
-    """What :meth:`OptionsDQN.train` records, per finished episode and per gradient step."""
-
-    episode_returns: list[float] = field(default_factory=list)
-    episode_lengths: list[int] = field(default_factory=list)  # primitive steps
-    episode_end_frames: list[int] = field(default_factory=list)  # total frames when the episode ended
-    losses: list[float] = field(default_factory=list)
-    # one entry per :meth:`OptionsDQN.record_evaluation`: [training episodes so far, frames so far, mean greedy
-    # return, episodes evaluated]
-    evaluations: list[list[float]] = field(default_factory=list)
-
-    def record_episodes(self, batch: TensorDictBase, frames: int) -> torch.Tensor | None:
-        """Appends the episodes that end in a collector ``batch`` ``[*envs, T]`` (needs ``RewardSum`` and
-        ``StepCounter``), in the order they ended; ``frames`` is the count before the batch. Returns their returns,
-        or ``None`` when none ended."""
-        done = batch.get(("next", "done")).squeeze(-1)
-        if not done.any():
-            return None
-        # frame index (1-based) of every step, counting all envs of a time step together
-        n_envs = batch.shape[:-1].numel()
-        frame = (frames + (torch.arange(batch.shape[-1]) + 1) * n_envs).expand(batch.shape).to(done.device)
-        returns = batch.get(("next", "episode_reward")).squeeze(-1)[done]
-        lengths = batch.get(("next", "step_count")).squeeze(-1)[done]
-        ends = frame[done]
-        order = ends.argsort(stable=True)
-        self.episode_returns += returns[order].tolist()
-        self.episode_lengths += lengths[order].tolist()
-        self.episode_end_frames += ends[order].tolist()
-        return returns
-
-
 def _batched_env(env_factory: Callable[[], EnvBase], num_envs: int, parallel: bool) -> EnvBase:
     if num_envs == 1:
         env = env_factory()
@@ -339,11 +307,6 @@ def _check_env(owner: str, env: EnvBase, config: Any) -> Any:
     envs = env.batch_size.numel() if len(env.batch_size) else 1
     check_frames_per_batch(config.frames_per_batch, envs, "the env's batch size")
     return spec
-
-
-def _check_train_arguments(total_frames: Any, callback: Any) -> None:
-    check_int(total_frames, "total_frames", minimum=0, allow_none=True)
-    check_callable(callback, "callback", allow_none=True)
 
 
 _TRAINING_LOG_FIELDS = ("episode_returns", "episode_lengths", "episode_end_frames", "losses", "evaluations")
@@ -427,7 +390,7 @@ def _greedy_returns(env: EnvBase, actor: nn.Module, num_episodes: int, max_steps
     """Returns of the first ``num_episodes`` episodes of ``actor``'s deterministic policy on ``env`` (seeded with
     ``seed``, its executors too), run for ``max_steps`` steps; closes ``env``."""
     env.set_seed(seed)
-    _seed_executors(env, seed)
+    seed_executors(env, seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         data = env.rollout(max_steps, actor, auto_cast_to_device=True, break_when_any_done=False)
     env.close()
@@ -436,15 +399,6 @@ def _greedy_returns(env: EnvBase, actor: nn.Module, num_episodes: int, max_steps
     if data.ndim > 1:  # [*envs, T] -> [T, *envs]: episodes in the order they ended
         done, returns = done.movedim(-1, 0), returns.movedim(-1, 0)
     return returns[done][:num_episodes].tolist()
-
-
-def _seed_executors(env: EnvBase, seed: int) -> None:
-    """Seeds the private generators of the executors of ``env`` (one stream per level), as ``collector.set_seed``
-    seeds the env: the options' draws neither depend on nor shift the exploration's."""
-    if isinstance(env, TransformedEnv):
-        for executor in env.transform.modules():
-            if isinstance(executor, OptionExecutor):
-                executor.set_seed(seed * 1_000_003 + 7_919 * executor.level)
 
 
 def _count_executors(env: EnvBase) -> int:
@@ -478,7 +432,7 @@ def _generators(env: EnvBase) -> dict[str, torch.Generator]:
     return found
 
 
-class OptionsDQN:
+class OptionsDQN(CollectorTraining):
     """DQN over actions, options or both, on any env with a ``Categorical`` action.
 
     Args:
@@ -614,69 +568,31 @@ class OptionsDQN:
                 level=self._executor_level,
             )
             env = env.append_transform(executor)
-            _seed_executors(env, config.seed)  # the options' draws have their own stream, apart from exploration's
+            seed_executors(env, config.seed)  # the options' draws have their own stream, apart from exploration's
         if config.max_decisions is not None:
             # counts the decisions of the top executor (the policy's), or every step without an executor
             env = env.append_transform(DecisionCounter(config.max_decisions, level=_count_executors(env) or None))
         return _with_reward_sum_and_step_count(env)
 
     # ------------------------------------------------------------- training
-    def train(
-        self, total_frames: int | None = None, callback: Callable[[OptionsDQN, TensorDictBase], Any] | None = None
-    ) -> TrainingLog:
-        """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
+    # ------------------------------------------------------------- training (the loop: CollectorTraining.train)
+    def _collector_policy(self) -> nn.Module:
+        return self.policy
 
-        The budget is counted in whole collector batches: ``total_frames`` is rounded up to a multiple of
-        ``config.frames_per_batch`` (which the envs fill exactly: see :class:`DQNHyperParameters`).
-        ``callback(agent, batch)`` is called after every collector batch (logging, evaluation, checkpoints); when
-        it returns ``True`` training stops there (e.g. after a number of episodes).
-        Can be called again to continue training, also after :meth:`load_state_dict`.
-        """
-        _check_train_arguments(total_frames, callback)
-        config = self.config
-        if total_frames is None:
-            total_frames = config.total_frames - self.frames
-        total_frames = math.ceil(total_frames / config.frames_per_batch) * config.frames_per_batch
-        if total_frames <= 0:
-            return self.log
-        # The collector resets the env when it is built: seed the env first, so that every call starts from a state
-        # set by the frame count alone (a run resumed from a checkpoint then starts as the uninterrupted run did)
-        self.env.set_seed(config.seed + self.frames)
-        collector = Collector(
-            self.env,
-            self.policy,
-            frames_per_batch=config.frames_per_batch,
-            total_frames=total_frames,
-            storing_device=self.device,
-            policy_device=self.device,
-            # Named explicitly: TorchRL 0.14.1's Collector picks its env-side CUDA sync from this argument only, so
-            # without it a CUDA policy's actions reach a CPU env through an unsynchronised non-blocking copy
-            # (seen on an H100: garbage actions, ALE's "list index out of range").
-            env_device=self.env.device,
-            auto_register_policy_transforms=False,
-        )
-        collector.set_seed(config.seed + self.frames)
-        _seed_executors(self.env, config.seed + self.frames)
-        self.smdp.reset()  # the collector starts new episodes
-        try:
-            for batch in collector:
-                self._record_episodes(batch)
-                decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
-                if self._adds_intra_option_steps:
-                    decisions = self._with_intra_option_steps(decisions, batch)
-                if decisions.shape[0]:
-                    self.replay_buffer.extend(decisions)
-                self.frames += batch.numel()
-                self.exploration.step(batch.numel())
-                if len(self.replay_buffer) >= max(config.learning_starts, 1):
-                    for _ in range(config.updates_per_batch):
-                        self._update()
-                collector.update_policy_weights_()
-                if callback is not None and callback(self, batch):
-                    break
-        finally:
-            collector.shutdown(close_env=False)
-        return self.log
+    def _start_episodes(self) -> None:
+        self.smdp.reset()
+
+    def _learn(self, batch: TensorDictBase) -> None:
+        """The batch's decisions (and intra-option steps) into the replay buffer, then the gradient steps."""
+        decisions = self.smdp(batch)  # [M]; empty when no decision ended in this batch
+        if self._adds_intra_option_steps:
+            decisions = self._with_intra_option_steps(decisions, batch)
+        if decisions.shape[0]:
+            self.replay_buffer.extend(decisions)
+        self.exploration.step(batch.numel())
+        if len(self.replay_buffer) >= max(self.config.learning_starts, 1):
+            for _ in range(self.config.updates_per_batch):
+                self._update()
 
     @property
     def _adds_intra_option_steps(self) -> bool:

@@ -27,7 +27,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
@@ -38,18 +37,16 @@ from torchrl_options.agents.dqn import (
     _check_env,
     _check_network,
     _check_state,
-    _check_train_arguments,
     _count_executors,
     _generators,
     _greedy_returns,
     _restore_or_roll_back,
-    _seed_executors,
     _with_reward_sum_and_step_count,
     check_device,
     check_frames_per_batch,
     check_max_grad_norm,
-    TrainingLog,
 )
+from torchrl_options.agents.training_loop import CollectorTraining, TrainingLog, seed_executors
 from torchrl_options.checkpoints import load_file, rng_state, save_file, set_rng_state
 from torchrl_options.checks import check_bool, check_int, check_nested_key
 from torchrl_options.data.on_policy import OnPolicyDecisions
@@ -144,7 +141,7 @@ class OptionsPPOConfig:
             raise ValueError(f"hidden_sizes must be a list of ints >= 1, got {sizes!r}.")
 
 
-class OptionsPPO:
+class OptionsPPO(CollectorTraining):
     """PPO over actions, options or both, on any env with a ``Categorical`` action (see the module docstring).
 
     Each collector batch becomes one entry per decision (:class:`~torchrl_options.data.OnPolicyDecisions`; a
@@ -270,55 +267,21 @@ class OptionsPPO:
                     level=self._executor_level,
                 )
             )
-            _seed_executors(env, config.seed)
+            seed_executors(env, config.seed)
         return _with_reward_sum_and_step_count(env)
 
-    # ------------------------------------------------------------- training
-    def train(
-        self, total_frames: int | None = None, callback: Callable[[OptionsPPO, TensorDictBase], Any] | None = None
-    ) -> TrainingLog:
-        """Collects ``total_frames`` more frames (default: what is left of ``config.total_frames``) and learns.
+    # ------------------------------------------------------------- training (the loop: CollectorTraining.train)
+    def _collector_policy(self) -> nn.Module:
+        return self.actor
 
-        The budget is counted in whole collector batches (one PPO update each): ``total_frames`` is rounded up to a
-        multiple of ``config.frames_per_batch`` (which the envs fill exactly: see :class:`OptionsPPOConfig`).
-        ``callback(agent, batch)`` is called after every collector batch; when it returns ``True`` training stops
-        there. Can be called again to continue training (the collector then restarts the episodes), also after
-        :meth:`load_state_dict`.
-        """
-        _check_train_arguments(total_frames, callback)
-        config = self.config
-        if total_frames is None:
-            total_frames = config.total_frames - self.frames
-        total_frames = math.ceil(total_frames / config.frames_per_batch) * config.frames_per_batch
-        if total_frames <= 0:
-            return self.log
-        self.env.set_seed(config.seed + self.frames)
-        collector = Collector(
-            self.env,
-            self.actor,
-            frames_per_batch=config.frames_per_batch,
-            total_frames=total_frames,
-            storing_device=self.device,
-            policy_device=self.device,
-            env_device=self.env.device,
-            auto_register_policy_transforms=False,
-        )
-        collector.set_seed(config.seed + self.frames)
-        _seed_executors(self.env, config.seed + self.frames)
-        self.decisions.reset()  # the collector starts new episodes
-        try:
-            for batch in collector:
-                self._record_episodes(batch)
-                decisions = self.decisions(batch)
-                self.frames += batch.numel()
-                if decisions.shape[0]:
-                    self.update(decisions)
-                collector.update_policy_weights_()
-                if callback is not None and callback(self, batch):
-                    break
-        finally:
-            collector.shutdown(close_env=False)
-        return self.log
+    def _start_episodes(self) -> None:
+        self.decisions.reset()
+
+    def _learn(self, batch: TensorDictBase) -> None:
+        """One PPO update on the batch's decisions (none when no decision ended in it)."""
+        decisions = self.decisions(batch)
+        if decisions.shape[0]:
+            self.update(decisions)
 
     def update(self, decisions: TensorDictBase) -> None:
         """One PPO update on a decision-level batch (from :attr:`decisions`): GAE over the decisions, then

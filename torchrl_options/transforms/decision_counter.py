@@ -17,7 +17,14 @@ from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
-from torchrl_options.transforms.option_executor import _level_key, _reset_key, _sibling_key
+from torchrl_options.transforms.keys import (
+    FlagToState,
+    done_key_arguments,
+    followed_done_entries,
+    level_key,
+    reset_key,
+    sibling_key,
+)
 
 __all__ = ["DecisionCounter"]
 
@@ -45,6 +52,13 @@ class DecisionCounter(Transform):
     own ``max_steps`` (which truncates the episode, and ends the option with it) set well above
     ``max_decisions``.
 
+    **Done entries** (as TorchRL's :class:`~torchrl.envs.transforms.StepCounter`): the count has the shape of the
+    first (outermost) done entry followed (``done_key``, by default the ``"done"`` next to each of the env's reset
+    keys), and is reset by the ``"_reset"`` next to it. A truncation is written there and carried to the other
+    done entries followed (e.g. the ``("agents", "done")`` of a multi-agent env, with their ``"truncated"``). With
+    per-agent executors (decisions ``[*B, n_agents]`` for a root count ``[*B, 1]``) a step is a decision when any
+    agent decides, and a decision is over once no agent's option runs.
+
     Args:
         max_decisions (int): decisions per episode, at least 1.
 
@@ -57,9 +71,12 @@ class DecisionCounter(Transform):
         option_keys (sequence of NestedKey, optional): the running-option entries of the executors; the next
             step is a decision when all are ``-1``. Defaults to ``["option", ..., "option_L"]``.
         count_key (NestedKey, optional): where the count is written. Defaults to ``"decision_count"``.
-        done_key (NestedKey, optional): the done entry (its shape is the count's). Defaults to ``"done"``.
-        truncated_key (NestedKey, optional): the truncation entry written. Defaults to the ``"truncated"`` entry
-            next to ``done_key``.
+        done_key (NestedKey or list of NestedKey, optional): the done entries (the first one's shape is the
+            count's), named as for :class:`~torchrl_options.transforms.OptionExecutor`: a string is a leaf name
+            looked up next to each of the env's reset keys, a list names exactly its entries. Defaults to
+            ``"done"``.
+        truncated_key (NestedKey, optional): the truncation entry written next to the first done entry. Defaults to
+            the ``"truncated"`` entry next to it.
 
     Raises:
         ValueError: for ``max_decisions < 1``, a bad ``level``, or, once appended, when the env does not provide
@@ -101,7 +118,7 @@ class DecisionCounter(Transform):
         decision_key: NestedKey | None = None,
         option_keys: Sequence[NestedKey] | None = None,
         count_key: NestedKey = "decision_count",
-        done_key: NestedKey = "done",
+        done_key: NestedKey | Sequence[NestedKey] = "done",
         truncated_key: NestedKey | None = None,
     ):
         if isinstance(max_decisions, bool) or not isinstance(max_decisions, int) or max_decisions < 1:
@@ -114,9 +131,9 @@ class DecisionCounter(Transform):
                 f"decision_key={decision_key!r}, option_keys={option_keys!r}."
             )
         if level is not None:
-            decision_key = decision_key if decision_key is not None else _level_key("option_decision", level)
+            decision_key = decision_key if decision_key is not None else level_key("option_decision", level)
             if option_keys is None:
-                option_keys = [_level_key("option", lvl) for lvl in range(1, level + 1)]
+                option_keys = [level_key("option", lvl) for lvl in range(1, level + 1)]
             option_keys = [unravel_key(k) for k in option_keys]
             if not option_keys:
                 raise ValueError("option_keys must name at least one running-option entry (or pass level=None).")
@@ -125,24 +142,82 @@ class DecisionCounter(Transform):
         self.decision_key = None if decision_key is None else unravel_key(decision_key)
         self.option_keys: list[NestedKey] = list(option_keys or [])
         self.count_key = unravel_key(count_key)
-        self.done_key = unravel_key(done_key)
-        if truncated_key is None:
-            truncated_key = _sibling_key(self.done_key, "truncated")
-        self.truncated_key = unravel_key(truncated_key)
-        self.reset_key = unravel_key(_reset_key(self.done_key))
+        done_names = done_key_arguments(done_key, "DecisionCounter")
         # the count it writes must not land on an entry it reads (the flags, the decision record, the options)
-        named = {"count_key": self.count_key, "done_key": self.done_key, "truncated_key": self.truncated_key}
+        named = {"count_key": self.count_key, **done_names}
         if self.decision_key is not None:
             named["decision_key"] = self.decision_key
         named.update({f"option_keys[{i}]": k for i, k in enumerate(self.option_keys)})
-        check_distinct_keys(named, "DecisionCounter")
+        named = check_distinct_keys(named, "DecisionCounter")
+        done_keys = [named[name] for name in done_names]
+        self.done_key: NestedKey | list[NestedKey] = done_keys if isinstance(done_key, list) else done_keys[0]
+        # an explicit truncation entry, or None: the "truncated" next to the first done entry followed
+        self._truncated_key = None if truncated_key is None else unravel_key(truncated_key)
+        check_distinct_keys({**named, "truncated_key": truncated_key or sibling_key(done_keys[0], "truncated")},
+                            "DecisionCounter")  # fmt: skip
         super().__init__(in_keys=[], out_keys=[self.count_key])
 
     # ------------------------------------------------------------------ specs
+    @property
+    def truncated_key(self) -> NestedKey:
+        """The truncation entry written: ``truncated_key``, or the ``"truncated"`` next to the first done entry."""
+        if "_done_plan_cache" not in self.__dict__ and self.parent is None:  # not appended yet: as named
+            first = self.done_key[0] if isinstance(self.done_key, list) else self.done_key
+            return self._truncated_key or sibling_key(first, "truncated")
+        return self._done_plan()[0][1]
+
+    @property
+    def done_keys(self) -> list[NestedKey]:
+        """The done entries followed in the env (``done_key`` looked up in its done spec); the first is the count's."""
+        return [key for key, _, _ in self._done_plan()]
+
+    @property
+    def reset_key(self) -> NestedKey:
+        """The ``"_reset"`` next to the first done entry: the one that restarts the count."""
+        return reset_key(self.done_keys[0])
+
+    def _done_plan(self) -> list[tuple[NestedKey, NestedKey, FlagToState | None]]:
+        """``(done key, its truncation entry, map of the count's shape onto it)`` per done entry followed; the first
+        one's map is None (it has the count's shape)."""
+        plan = self.__dict__.get("_done_plan_cache")
+        if plan is None:
+            keys, done_spec = followed_done_entries(self, self.done_key, "DecisionCounter")
+            shape = done_spec[keys[0]].shape
+            plan = [(keys[0], self._truncated_key or sibling_key(keys[0], "truncated"), None)] + [
+                (key, sibling_key(key, "truncated"), FlagToState(shape, done_spec[key].shape, key, "DecisionCounter"))
+                for key in keys[1:]
+            ]
+            self.__dict__["_done_plan_cache"] = plan
+        return plan
+
+    def _record_maps(self) -> list[FlagToState]:
+        """Maps of the decision record and of each running option entry onto the count's shape."""
+        maps = self.__dict__.get("_record_maps_cache")
+        if maps is None:
+            observation_spec = self.parent.full_observation_spec
+            shape = self.parent.full_done_spec[self.done_keys[0]].shape
+            maps = [FlagToState(observation_spec[key].shape, shape, key, "DecisionCounter")
+                    for key in (self.decision_key, *self.option_keys)]  # fmt: skip
+            self.__dict__["_record_maps_cache"] = maps
+        return maps
+
     def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
+        self.__dict__.pop("_done_plan_cache", None)
+        self.__dict__.pop("_record_maps_cache", None)
         if self.parent is not None:  # a missing executor fails here, when the counter is appended
             self._check_keys(self.parent.full_observation_spec, self.parent.full_done_spec)
+
+    def empty_cache(self) -> None:
+        self.__dict__.pop("_done_plan_cache", None)
+        self.__dict__.pop("_record_maps_cache", None)
+        super().empty_cache()
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state.pop("_done_plan_cache", None)
+        state.pop("_record_maps_cache", None)
+        return state
 
     def _check_keys(self, observation_spec: Composite, done_spec: Composite) -> None:
         keys = set(observation_spec.keys(True, True))
@@ -156,14 +231,12 @@ class DecisionCounter(Transform):
                     "decision_key and option_keys), or pass level=None to count every step. Found "
                     f"{sorted(keys, key=str)}."
                 )
-        if self.done_key not in done_spec.keys(True, True):
-            raise ValueError(
-                f"DecisionCounter: done_key {self.done_key!r} is not in the env's done spec "
-                f"({list(done_spec.keys(True, True))})."
-            )
+        self._done_plan()  # raises for a done_key naming no done entry
+        if self.decision_key is not None:
+            self._record_maps()
 
     def _count_spec(self, done_spec: Composite, device) -> Bounded:
-        shape = done_spec[self.done_key].shape
+        shape = done_spec[self.done_keys[0]].shape
         return Bounded(0, torch.iinfo(torch.int64).max, shape=shape, dtype=torch.int64, device=device)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -182,9 +255,10 @@ class DecisionCounter(Transform):
     def transform_output_spec(self, output_spec: Composite) -> Composite:
         output_spec = super().transform_output_spec(output_spec)
         done_spec = output_spec["full_done_spec"]
-        if self.truncated_key not in done_spec.keys(True, True):
-            done = done_spec[self.done_key]
-            done_spec[self.truncated_key] = Categorical(2, shape=done.shape, dtype=torch.bool, device=done.device)
+        for done_key, truncated_key, _ in self._done_plan():
+            if truncated_key not in done_spec.keys(True, True):
+                done = done_spec[done_key]
+                done_spec[truncated_key] = Categorical(2, shape=done.shape, dtype=torch.bool, device=done.device)
         return output_spec
 
     # ------------------------------------------------------------ env hooks
@@ -195,7 +269,9 @@ class DecisionCounter(Transform):
                 f"DecisionCounter: {self.count_key!r} is missing from the input of env.step. Reset the env first "
                 "and pass the tensordict returned by reset/step_mdp."
             )
-        done = next_tensordict.get(self.done_key)
+        plan = self._done_plan()
+        done_key, truncated_key, _ = plan[0]
+        done = next_tensordict.get(done_key)
         if self.decision_key is None:
             # no executor: every step is a decision, over after the step
             count = count + 1
@@ -207,23 +283,32 @@ class DecisionCounter(Transform):
                     f"DecisionCounter: decision_key {self.decision_key!r} is missing from the step's output: "
                     "append the DecisionCounter after the OptionExecutor (or pass level=None)."
                 )
-            count = count + decision.reshape(count.shape)
+            to_count, *option_maps = self._record_maps()
+            count = count + to_count(decision)
             # the decision made last is over when no option runs any more: the next step is a decision
-            over = next_tensordict.get(self.option_keys[0]).reshape(done.shape) < 0
-            for key in self.option_keys[1:]:
-                over = over & (next_tensordict.get(key).reshape(done.shape) < 0)
+            running = None
+            for key, to_count in zip(self.option_keys, option_maps):
+                runs = to_count(next_tensordict.get(key) >= 0)
+                running = runs if running is None else running | runs
+            over = ~running
         truncated = (count >= self.max_decisions) & over
-        previous = next_tensordict.get(self.truncated_key, None)
+        previous = next_tensordict.get(truncated_key, None)
         if previous is not None:
             truncated = truncated | previous
         next_tensordict.set(self.count_key, count)
-        next_tensordict.set(self.truncated_key, truncated)
-        next_tensordict.set(self.done_key, done | truncated)
+        next_tensordict.set(truncated_key, truncated)
+        next_tensordict.set(done_key, done | truncated)
+        for key, entry_truncated, to_entry in plan[1:]:  # the truncation carried to the other done entries
+            cut = to_entry(truncated)
+            previous = next_tensordict.get(entry_truncated, None)
+            next_tensordict.set(entry_truncated, cut if previous is None else previous | cut)
+            next_tensordict.set(key, next_tensordict.get(key) | cut)
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        done = tensordict_reset.get(self.done_key)
-        reset = tensordict.get(self.reset_key, None) if tensordict is not None else None
+        plan = self._done_plan()
+        done = tensordict_reset.get(plan[0][0])
+        reset = tensordict.get(reset_key(plan[0][0]), None) if tensordict is not None else None
         prev = tensordict.get(self.count_key, None) if tensordict is not None else None
         if reset is None or prev is None:
             count = torch.zeros(done.shape, dtype=torch.int64, device=done.device)
@@ -231,8 +316,9 @@ class DecisionCounter(Transform):
             # only the envs flagged by "_reset" start again (TorchRL also merges the others back afterwards)
             count = torch.where(reset.reshape(done.shape), 0, prev.reshape(done.shape))
         tensordict_reset.set(self.count_key, count)
-        if tensordict_reset.get(self.truncated_key, None) is None:
-            tensordict_reset.set(self.truncated_key, torch.zeros_like(done))
+        for done_key, truncated_key, _ in plan:
+            if tensordict_reset.get(truncated_key, None) is None:
+                tensordict_reset.set(truncated_key, torch.zeros_like(tensordict_reset.get(done_key)))
         return tensordict_reset
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -10,16 +10,18 @@ env, collector, exploration module and loss works unchanged on the augmented act
 from __future__ import annotations
 
 import logging
-from typing import NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs import EnvBase, Transform
 
 from torchrl_options.checks import check_distinct_keys
+from torchrl_options.transforms.keys import FlagToState, done_key_arguments, followed_done_entries, level_key, reset_key
 
 logger = logging.getLogger(__name__)
 
@@ -28,11 +30,7 @@ __all__ = ["OptionExecutor"]
 _NO_OPTION = -1
 # runtime caches kept in the instance __dict__ (as TorchRL's StepCounter does): rebuilt on demand, dropped by
 # empty_cache, set_container, clone and pickling
-_CACHES = ("_base_spec_cache", "_consts", "_direct_call_state")
-
-
-def _level_key(name: str, level: int) -> str:
-    return name if level == 1 else f"{name}_{level}"
+_CACHES = ("_base_spec_cache", "_consts", "_compiled_options", "_done_plan_cache")
 
 
 class OptionExecutor(Transform):
@@ -48,6 +46,14 @@ class OptionExecutor(Transform):
     state it lands in); the end of an episode (done, truncated or reset) also ends it. The step after a
     termination, and the first step of every episode, is a *decision*: the policy's action is used.
     Fox et al., 2017, sections 1, 3.4 and 5.
+
+    **Done entries**: as TorchRL's :class:`~torchrl.envs.transforms.StepCounter`, the executor follows every
+    done entry of the env (by default the ``"done"`` next to each of its reset keys: the root ``"done"``, and
+    nested ones such as ``("agents", "done")`` in a multi-agent env), each with the ``"_reset"`` next to it. Any
+    of them ends the option of the envs (or agents) it covers, and a reset starts afresh exactly the entries
+    whose ``"_reset"`` is set. A done entry coarser than the action (a root ``"done"`` ``[*B, 1]`` for per-agent
+    actions ``[*B, n_agents]``) covers all the agents of its env; a finer one (per-agent dones for a root action)
+    ends the option when any of its agents is done.
 
     ``options`` is any TensorDict module that reads the observation and writes ``option_logits``
     ``[..., K, A]`` and ``termination_logits`` ``[..., K]`` (a DDO options module or a hand-written one).
@@ -113,7 +119,10 @@ class OptionExecutor(Transform):
         level (int, optional): level of the executor in a hierarchy, 1 for the one closest to the env.
             Sets the default key names and ``lower_option_key``. Defaults to ``1``.
         action_key (NestedKey, optional): the action entry. Defaults to ``"action"``.
-        done_key (NestedKey, optional): the done entry ending options with episodes. Defaults to ``"done"``.
+        done_key (NestedKey or list of NestedKey, optional): the done entries ending options with episodes. A
+            string is a leaf name looked up next to each of the env's reset keys (``"done"``: the root one and
+            every nested one, see above); a tuple names one nested entry; a list names exactly the entries it
+            holds (``["done"]``: the root one only). Defaults to ``"done"``.
         option_key (NestedKey, optional): the running-option state entry.
         executed_action_key (NestedKey, optional): the executed-action record.
         executed_option_key (NestedKey, optional): the executed-option record.
@@ -125,6 +134,11 @@ class OptionExecutor(Transform):
         option_logits_key (NestedKey, optional): output of ``options``. Defaults to ``"option_logits"``.
         termination_logits_key (NestedKey, optional): output of ``options``. Defaults to
             ``"termination_logits"``.
+        compile_options (bool or dict, optional): call the options through ``torch.compile(options, **kwargs)``
+            (``True``: torch's defaults; a dict: the keyword arguments, e.g. ``{"backend": "eager"}``), compiled on
+            the first call in each process. On CPU it pays only over long runs: compiling takes seconds (a
+            minute with the default backend), and saves tens of microseconds per env step
+            (``benchmarks/bench_option_executor.py --compile``). Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -161,7 +175,7 @@ class OptionExecutor(Transform):
         greedy: bool = False,
         level: int = 1,
         action_key: NestedKey = "action",
-        done_key: NestedKey = "done",
+        done_key: NestedKey | Sequence[NestedKey] = "done",
         option_key: NestedKey | None = None,
         executed_action_key: NestedKey | None = None,
         executed_option_key: NestedKey | None = None,
@@ -170,6 +184,7 @@ class OptionExecutor(Transform):
         lower_option_key: NestedKey | None | str = "auto",
         option_logits_key: NestedKey = "option_logits",
         termination_logits_key: NestedKey = "termination_logits",
+        compile_options: bool | Mapping[str, Any] = False,
     ):
         if isinstance(num_options, bool) or not isinstance(num_options, int) or num_options < 1:
             raise ValueError(f"OptionExecutor: num_options must be a positive int, got {num_options!r}.")
@@ -191,16 +206,16 @@ class OptionExecutor(Transform):
                     f"[..., K, A] and 'termination_logits' [..., K]); its out_keys are {out_keys}."
                 )
         in_keys = getattr(options, "in_keys", None)
-        self.option_key = unravel_key(option_key or _level_key("option", level))
-        self.executed_action_key = unravel_key(executed_action_key or _level_key("executed_action", level))
-        self.executed_option_key = unravel_key(executed_option_key or _level_key("executed_option", level))
-        self.decision_key = unravel_key(decision_key or _level_key("option_decision", level))
-        self.option_actions_key = unravel_key(option_actions_key or _level_key("option_actions", level))
+        self.option_key = unravel_key(option_key or level_key("option", level))
+        self.executed_action_key = unravel_key(executed_action_key or level_key("executed_action", level))
+        self.executed_option_key = unravel_key(executed_option_key or level_key("executed_option", level))
+        self.decision_key = unravel_key(decision_key or level_key("option_decision", level))
+        self.option_actions_key = unravel_key(option_actions_key or level_key("option_actions", level))
         if lower_option_key == "auto":
-            lower_option_key = None if level == 1 else _level_key("option", level - 1)
+            lower_option_key = None if level == 1 else level_key("option", level - 1)
         self.lower_option_key = None if lower_option_key is None else unravel_key(lower_option_key)
         self.action_key = unravel_key(action_key)
-        self.done_key = unravel_key(done_key)
+        done_names = done_key_arguments(done_key, "OptionExecutor")
         self.option_logits_key = unravel_key(option_logits_key)
         self.termination_logits_key = unravel_key(termination_logits_key)
         records = [
@@ -215,11 +230,13 @@ class OptionExecutor(Transform):
         # a record written over the action, the done flag, the lower level's option or the options' outputs
         named = {"option_key": self.option_key, "option_actions_key": self.option_actions_key,
                  "executed_action_key": self.executed_action_key, "executed_option_key": self.executed_option_key,
-                 "decision_key": self.decision_key, "action_key": self.action_key, "done_key": self.done_key,
+                 "decision_key": self.decision_key, "action_key": self.action_key, **done_names,
                  "option_logits_key": self.option_logits_key, "termination_logits_key": self.termination_logits_key}
         if self.lower_option_key is not None:
             named["lower_option_key"] = self.lower_option_key
-        check_distinct_keys(named, "OptionExecutor")  # fmt: skip
+        named = check_distinct_keys(named, "OptionExecutor")  # fmt: skip
+        done_keys = [named[name] for name in done_names]
+        self.done_key: NestedKey | list[NestedKey] = done_keys if isinstance(done_key, list) else done_keys[0]
         k = getattr(options, "num_options", None)
         if isinstance(k, int) and not isinstance(k, bool) and k != num_options:
             raise ValueError(f"OptionExecutor: num_options={num_options} but the options module has num_options={k}.")
@@ -230,6 +247,12 @@ class OptionExecutor(Transform):
         self.greedy = greedy
         self.level = level
         self._options_in_keys = None if in_keys is None else [unravel_key(k) for k in in_keys]
+        if not isinstance(compile_options, (bool, Mapping)):
+            raise TypeError(
+                "OptionExecutor: compile_options must be a bool or a dict of torch.compile keyword arguments, got "
+                f"{compile_options!r}."
+            )
+        self.compile_options = compile_options if isinstance(compile_options, bool) else dict(compile_options)
         self._seed: int | None = None
 
     # ------------------------------------------------------------------ specs
@@ -317,6 +340,7 @@ class OptionExecutor(Transform):
         parent = self.parent
         if parent is not None:  # a wrong action spec or missing inputs fail here, when the executor is appended
             spec = self._base_action_spec()
+            self._done_plan()
             self._check_observation_keys(parent.observation_spec)
             a = getattr(self.options, "num_actions", None)
             if isinstance(a, int) and not isinstance(a, bool) and a != spec.n:
@@ -324,6 +348,39 @@ class OptionExecutor(Transform):
                     f"OptionExecutor (level {self.level}): the options choose among num_actions={a} actions, but the "
                     f"env below the executor has {spec.n} ({self.action_key!r}); options of level j choose among the "
                     "actions of the env with the levels below j."
+                )
+
+    @property
+    def done_keys(self) -> list[NestedKey]:
+        """The done entries the executor follows in its env (``done_key`` looked up in the env's done spec)."""
+        return [key for key, _, _ in self._done_plan()]
+
+    def _done_plan(self) -> list[tuple[NestedKey, NestedKey, FlagToState]]:
+        """``(done key, its reset key, the map of its flags onto the executor's state)`` per followed done entry."""
+        plan = self.__dict__.get("_done_plan_cache")
+        if plan is None:
+            keys, done_spec = followed_done_entries(self, self.done_key, "OptionExecutor")
+            state_shape = self._base_action_spec().shape
+            plan = [(key, reset_key(key), FlagToState(done_spec[key].shape, state_shape, key, "OptionExecutor"))
+                    for key in keys]  # fmt: skip
+            self._check_state_nodes(keys)
+            self.__dict__["_done_plan_cache"] = plan
+        return plan
+
+    def _check_state_nodes(self, done_keys: list[NestedKey]) -> None:
+        """The state entries must lie under the node of a followed done entry: TorchRL merges a partial reset node
+        by node (``"_reset"`` at ``(*node, "_reset")`` updates the entries under ``node``), so a state entry outside
+        every such node would keep its value from before the reset."""
+        nodes = [() if isinstance(key, str) else key[:-1] for key in done_keys]
+        for name, key in (("option_key", self.option_key), ("option_actions_key", self.option_actions_key),
+                          ("executed_action_key", self.executed_action_key),
+                          ("executed_option_key", self.executed_option_key), ("decision_key", self.decision_key)):
+            path = () if isinstance(key, str) else key[:-1]
+            if not any(path[: len(node)] == node for node in nodes):
+                raise ValueError(
+                    f"OptionExecutor: the state entry {key!r} ({name}) lies outside every node of the done entries "
+                    f"it follows ({done_keys}): TorchRL would not reset it with them. Put it next to them, e.g. "
+                    f"{name}={(*nodes[0], key if isinstance(key, str) else key[-1])!r}."
                 )
 
     def empty_cache(self) -> None:
@@ -463,36 +520,48 @@ class OptionExecutor(Transform):
     def _run_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """The options' ``(option_logits, termination_logits)`` at the state of ``tensordict``, without gradients.
 
-        Once :meth:`_direct_call` has shown that ``options.module`` can be called on the input tensors directly,
-        that call is made here with no other work (collectors already run without gradients).
+        The options module is called through its public TensorDict call, on a tensordict holding the entries it
+        reads (so its outputs never land in the env's data); compiled first when ``compile_options`` asks for it.
         """
-        state = self.__dict__.get("_direct_call_state")
-        options = self.options
-        if state is not None and state[1] is not None and state[0] is options:
-            inputs = [tensordict.get(key, None) for key in self._options_in_keys]
-            for x in inputs:
-                if x is None:
-                    break  # the full path says which input is missing
-            else:
-                try:
-                    if torch.is_grad_enabled():
-                        with torch.no_grad():
-                            out = options.module(*inputs)
-                    else:
-                        out = options.module(*inputs)
-                except RuntimeError as err:
-                    raise self._options_error(tensordict, err) from err
-                return out[state[1]], out[state[2]]
-        with torch.no_grad():
-            return self._call_options(tensordict)
-
-    def _call_options(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        keys = self._options_in_keys
+        if keys is None:
+            inputs = tensordict.copy()
+        else:
+            try:
+                inputs = tensordict.select(*keys)
+            except KeyError:
+                missing = [key for key in keys if tensordict.get(key, None) is None]
+                raise ValueError(
+                    f"OptionExecutor: the options module reads {missing}, missing from the env's output (it has "
+                    f"{list(tensordict.keys(True, True))})."
+                ) from None
+        options = self.__dict__.get("_compiled_options")
+        if options is None:
+            options = self._options_call()
         try:
-            return self._call_options_unchecked(tensordict)
+            if torch.is_grad_enabled():
+                with torch.no_grad():
+                    out = options(inputs)
+            else:
+                out = options(inputs)
         except (RuntimeError, ValueError) as err:  # e.g. options built for another observation size: say so
-            if str(err).startswith("OptionExecutor"):  # the executor's own check
-                raise
             raise self._options_error(tensordict, err) from err
+        logits, term = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
+        if logits is None or term is None:
+            raise ValueError(
+                f"OptionExecutor: the options module did not write {self.option_logits_key!r} and "
+                f"{self.termination_logits_key!r}; it wrote {list(out.keys(True, True))}."
+            )
+        return logits, term
+
+    def _options_call(self) -> TensorDictModuleBase:
+        """The options module, or its ``torch.compile`` (kept as a runtime cache) with ``compile_options``."""
+        if not self.compile_options:
+            return self.options
+        kwargs = {} if self.compile_options is True else dict(self.compile_options)
+        compiled = torch.compile(self.options, **kwargs)
+        self.__dict__["_compiled_options"] = compiled
+        return compiled
 
     def _options_error(self, tensordict: TensorDictBase, err: Exception) -> ValueError:
         keys = self._options_in_keys if self._options_in_keys is not None else list(tensordict.keys(True, True))
@@ -504,71 +573,6 @@ class OptionExecutor(Transform):
             f"{tuple(tensordict.batch_size)}); were the options built for this env's observation size? "
             f"the module said: {err}"
         )
-
-    def _call_options_unchecked(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        keys = self._options_in_keys
-        if keys is not None:
-            inputs = [tensordict.get(key, None) for key in keys]
-            missing = [key for key, x in zip(keys, inputs) if x is None]
-            if missing:
-                raise ValueError(
-                    f"OptionExecutor: the options module reads {missing}, missing from the env's output (it has "
-                    f"{list(tensordict.keys(True, True))})."
-                )
-            direct = self._direct_call(tensordict, inputs)
-            if direct is not None:
-                return direct
-            out = self.options(tensordict.select(*keys))
-        else:
-            out = self.options(tensordict.copy())
-        logits, term = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
-        if logits is None or term is None:
-            raise ValueError(
-                f"OptionExecutor: the options module did not write {self.option_logits_key!r} and "
-                f"{self.termination_logits_key!r}; it wrote {list(out.keys(True, True))}."
-            )
-        return logits, term
-
-    def _direct_call(
-        self, tensordict: TensorDictBase, inputs: list[torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The outputs of a plain ``TensorDictModule`` from its ``module`` called on the input tensors.
-
-        ``TensorDictModule.forward`` wraps every output in a TensorDict, which costs more than a small MLP inside an
-        env step. For a plain ``TensorDictModule`` (no ``method``), the first call runs both ways and compares the
-        outputs: when they agree, later calls go through ``options.module`` directly (the same computation: positional
-        inputs in ``in_keys`` order, outputs in ``out_keys_source`` order); otherwise (e.g. inputs mapped to keyword
-        arguments in another order, a stochastic module) they keep going through the TensorDict call.
-        """
-        options = self.options
-        state = self.__dict__.get("_direct_call_state")
-        if state is not None and state[0] is options:
-            if state[1] is None:
-                return None
-            out = options.module(*inputs)
-            return out[state[1]], out[state[2]]
-        positions = None
-        if type(options) is TensorDictModule and options.method is None and not options.method_kwargs:
-            out_keys = [unravel_key(k) for k in options.out_keys_source]
-            if self.option_logits_key not in out_keys or self.termination_logits_key not in out_keys:
-                self.__dict__["_direct_call_state"] = (options, None, None)
-                return None
-            i, j = out_keys.index(self.option_logits_key), out_keys.index(self.termination_logits_key)
-            out = options(tensordict.select(*self._options_in_keys))
-            expected = out.get(self.option_logits_key, None), out.get(self.termination_logits_key, None)
-            try:
-                direct = options.module(*inputs)
-                direct = (direct[i], direct[j]) if isinstance(direct, tuple) and len(direct) == len(out_keys) else None
-            except Exception:  # noqa: BLE001 - any failure means "not callable that way"
-                direct = None
-            if (
-                direct is not None
-                and all(isinstance(x, torch.Tensor) for x in (*direct, *expected))
-                and all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(direct, expected))
-            ):
-                positions = (i, j)
-        self.__dict__["_direct_call_state"] = (options, *(positions or (None, None)))
-        return direct if positions is not None else None
 
     # ---------------------------------------------------------------- checks
     def _check_options_outputs(
@@ -723,11 +727,13 @@ class OptionExecutor(Transform):
         if self.lower_option_key is not None:
             # call-and-return: no termination check while the level below still runs its option
             terminate = terminate & self._lower_ready(next_tensordict, terminate.shape)
-        # the end of an episode ends the option too; option == -1 stays -1
-        done = next_tensordict.get(self.done_key, None)
-        if done is None:
-            raise ValueError(f"OptionExecutor: the env's output has no done entry {self.done_key!r} (done_key).")
-        ends = terminate | (done if done.shape == terminate.shape else done.reshape(terminate.shape))
+        # the end of an episode (any followed done entry) ends the option too; option == -1 stays -1
+        ends = terminate
+        for done_key, _, to_state in self._done_plan():
+            done = next_tensordict.get(done_key, None)
+            if done is None:
+                raise ValueError(f"OptionExecutor: the env's output has no done entry {done_key!r} (done_key).")
+            ends = ends | to_state(done)
         next_tensordict.set(self.option_key, torch.where(ends, consts.no_option, option))
         next_tensordict.set(self.option_actions_key, option_actions)
         next_tensordict.set(self.executed_action_key, tensordict.get(self.executed_action_key))
@@ -746,9 +752,7 @@ class OptionExecutor(Transform):
             consts = self._constants(device)
         self._raise_deferred(consts, wait=True)  # resets already wait for the device (done.any())
         option_actions, _ = self._evaluate_options(tensordict_reset, consts)
-        reset = tensordict.get(_reset_key(self.done_key), None) if tensordict is not None else None
-        if reset is not None and reset.shape != shape:
-            reset = reset.reshape(shape)
+        reset = self._reset_mask(tensordict)
         # a new episode starts with a decision; the records are empty (-1 / False) until its first step. Only
         # envs flagged by "_reset" change (TorchRL also keeps the entries of the other envs after _reset)
         entries = (
@@ -773,6 +777,21 @@ class OptionExecutor(Transform):
         if consts.deferred is not None:
             consts.deferred.publish()
         return tensordict_reset
+
+    def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor | None:
+        """The state entries a reset starts afresh: those flagged by the ``"_reset"`` of any followed done entry,
+        mapped onto the state's shape; ``None`` (all of them) when a reset entry is missing (as for TorchRL's
+        ``StepCounter``)."""
+        if tensordict is None:
+            return None
+        mask = None
+        for _, key, to_state in self._done_plan():
+            flag = tensordict.get(key, None)
+            if flag is None:
+                return None
+            flag = to_state(flag)
+            mask = flag if mask is None else mask | flag
+        return mask
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise NotImplementedError(
@@ -862,11 +881,3 @@ def _pick(table: torch.Tensor, option: torch.Tensor, consts: _StepConstants) -> 
         return table[consts.arange, option]
     return table.reshape(consts.n, consts.K)[consts.arange, option.reshape(-1)].view(consts.shape)
 
-
-def _sibling_key(key: NestedKey, name: str) -> NestedKey:
-    """``name`` next to ``key``: ``"_reset"`` for ``"done"``, ``(..., "_reset")`` for ``(..., "done")``."""
-    return name if isinstance(key, str) else (*key[:-1], name)
-
-
-def _reset_key(done_key: NestedKey) -> NestedKey:
-    return _sibling_key(done_key, "_reset")
