@@ -172,3 +172,24 @@ def test_throughput_table_is_the_kept_benchmark_output():
     lines = [line for line in _table_lines(kept) if line.startswith(("| serial", "| parallel"))]
     assert len(lines) == 10 and not _quoted(lines, _page())
     assert sum("TorchRL PPO A" in line for line in lines) == 2
+
+
+def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
+    """Round 6 (the usage floor): the page's figures, recomputed, and its verdict: the floor neither beats random
+    boundaries at the true rate in F1 +-2 nor "one option everywhere" in label accuracy, and the trained model's
+    largest option still holds most steps."""
+    records = _records("round6_usage_floor")
+    assert _by_method(records) and all(s == set(range(5)) for s in _by_method(records).values())
+    summary = segmentation_summary(records, "subgoal")
+    page = _page()
+    section = page[page.index("**A floor on option usage does not fix it either**"):]
+    for label, method in (("defaults", "mlp K=5"), ("`usage_floor=0.5`", "mlp K=5 usage_floor=0.5")):
+        ddo = summary[("BabyAI-UnlockPickup-v0", method)]["ddo"]
+        row = next(x for x in section.splitlines() if x.startswith(f"| {label} |"))
+        for metric in ("label_accuracy", "f1_w2", "boundary_rate"):
+            mean, low, high = ddo[metric]
+            assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in row, (label, metric)
+    floor = summary[("BabyAI-UnlockPickup-v0", "mlp K=5 usage_floor=0.5")]
+    assert floor["ddo"]["f1_w2"][2] < floor["random"]["f1_w2"][1]
+    assert floor["ddo"]["label_accuracy"][0] < floor["one_option"]["label_accuracy"][0]
+    assert floor["max_usage"][0] > 0.8
