@@ -17,6 +17,8 @@ from torchrl_options.discovery import (
     restart_disagreement,
     TabulatedDDO,
     unique_rows,
+    UsageFloor,
+    check_usage_floor,
 )
 from torchrl_options.discovery.split_merge import check_split_merge_options, copy_option, propose_pairs, split_merge
 
@@ -141,6 +143,25 @@ CASES = [
      "the columns must share their leading size N, got [3, 4]"),
     ("unique_rows", "a 0-d column", lambda: unique_rows([torch.tensor(1.0)]), TypeError, "columns[0] must be a tensor with a leading dimension"),
     ("unique_rows", "control: one column", lambda: unique_rows([torch.tensor([1, 1, 2])]), OK, None),
+    # ---- UsageFloor / check_usage_floor
+    ("check_usage_floor", "a floor of 1 (every option at least its uniform share: no room to move)",
+     lambda: check_usage_floor(1.0), ValueError, "usage_floor must be a share of the uniform usage 1/K in (0, 1), got 1.0"),
+    ("check_usage_floor", "a floor of 0", lambda: check_usage_floor(0.0), ValueError, "in (0, 1), got 0.0"),
+    ("check_usage_floor", "NaN", lambda: check_usage_floor(NAN), ValueError, "usage_floor must be a number, got nan"),
+    ("check_usage_floor", "a string", lambda: check_usage_floor("0.5"), TypeError, "usage_floor must be a number or None"),
+    ("check_usage_floor", "a bool", lambda: check_usage_floor(True), TypeError, "usage_floor must be a number or None"),
+    ("check_usage_floor", "control: None and 0.5", lambda: (check_usage_floor(None), check_usage_floor(0.5)), OK, None),
+    ("UsageFloor", "num_options 0", lambda: UsageFloor(0, 0.5), ValueError, "num_options must be an int >= 1"),
+    ("UsageFloor", "num_options a float", lambda: UsageFloor(2.0, 0.5), TypeError, "num_options must be an int"),
+    ("UsageFloor", "floor None", lambda: UsageFloor(2, None), TypeError, "floor must be a number in (0, 1), got None"),
+    ("UsageFloor", "floor above 1", lambda: UsageFloor(2, 1.5), ValueError, "floor must be a share of the uniform usage"),
+    ("UsageFloor", "step negative", lambda: UsageFloor(2, 0.5, step=-1), ValueError, "step must be a positive finite number"),
+    ("UsageFloor.update", "usage of the wrong size", lambda: UsageFloor(2, 0.5).update(torch.zeros(3)), ValueError,
+     "usage must be a [K=2] tensor, got (3,)"),
+    ("UsageFloor.update", "usage a list", lambda: UsageFloor(2, 0.5).update([0.5, 0.5]), TypeError, "usage must be a [K=2] tensor, got list"),
+    ("UsageFloor.update", "a NaN usage (would make the dual NaN)", lambda: UsageFloor(2, 0.5).update(torch.tensor([NAN, 0.5])),
+     ValueError, "usage must be finite"),
+    ("UsageFloor", "control: two options, floor 0.5, one update", lambda: UsageFloor(2, 0.5).update(torch.tensor([0.9, 0.1])), OK, None),
 ]  # fmt: skip
 
 # change_points (discovery/initialization.py): a negative action used to be read as action 0

@@ -68,9 +68,12 @@ class UsageFloor:
 
     def update(self, usage: torch.Tensor) -> None:
         """One projected dual step from the E-step's usage shares ``usage`` ``[K]`` (summing to 1)."""
-        if not isinstance(usage, torch.Tensor) or usage.shape != (self.num_options,):
-            got = tuple(usage.shape) if isinstance(usage, torch.Tensor) else type(usage).__name__
-            raise ValueError(f"UsageFloor.update: usage must be a [K={self.num_options}] tensor, got {got}.")
+        if not isinstance(usage, torch.Tensor):
+            raise TypeError(f"UsageFloor.update: usage must be a [K={self.num_options}] tensor, got {type(usage).__name__}.")
+        if usage.shape != (self.num_options,):
+            raise ValueError(f"UsageFloor.update: usage must be a [K={self.num_options}] tensor, got {tuple(usage.shape)}.")
+        if not bool(torch.isfinite(usage).all()):
+            raise ValueError(f"UsageFloor.update: usage must be finite, got {usage.tolist()}.")
         relative = usage.detach().to(self.bias) * self.num_options
         self.bias = (self.bias + self.step * (self.floor - relative)).clamp_min(0.0)
 
