@@ -353,3 +353,64 @@ def test_kept_faithful_cpu(tmp_path):
     assert len(phase1) == len(GAMES) * len(seeds) * 150
     later = actions_only(rows, lambda r: int(r["seed"]) >= 4)
     assert later == actions_only(reference, lambda r: int(r["seed"]) >= 4) and len(later) == len(GAMES) * 4 * 450
+
+
+def test_kept_faithful_cpu_usage_floor(tmp_path):
+    """faithful-cpu with ``atari.ddo_usage_floor=0.5`` (issue 49): the figures quoted on docs/experiments/atari_ram.md
+    and the README, recomputed from results/atari_faithful_cpu_floor/."""
+    import json
+
+    from torchrl_options.discovery import options_in_use
+    from torchrl_options.experiments.aggregates import aggregates_markdown
+    from torchrl_options.experiments.atari import greedy_evaluation_markdown, option_usage_markdown
+
+    folder = os.path.join(ROOT, "results", "atari_faithful_cpu_floor")
+    with open(os.path.join(folder, "settings.json")) as f:
+        assert json.load(f)["atari.ddo_usage_floor"] == 0.5
+    rows = _kept_rows(folder, tmp_path)
+    seeds = sorted({int(r["seed"]) for r in rows})
+    assert seeds == list(range(8))
+    comparisons = {c.game: c for c in atari_comparison(rows, phase1_episodes=150, final_window=50)}
+    assert set(comparisons) == set(GAMES) and all(c.num_seeds == 8 for c in comparisons.values())
+    with open(os.path.join(ROOT, "docs", "experiments", "atari_ram.md")) as f:
+        page = f.read()
+    with open(os.path.join(ROOT, "README.md")) as f:
+        readme = f.read()
+    start = page.index("### The faithful protocol with a usage floor")
+    section = page[start:page.index("\n### ", start + 1)]
+    for game, c in comparisons.items():
+        mean, low, high = c.diff_episodes
+        assert low <= 0 <= high, game  # no verdict in any game, as the page says
+        row = next(x for x in section.splitlines() if x.startswith(f"| {game} |"))
+        assert f"| {mean:+.1f} [{low:+.1f}, {high:+.1f}] |" in row, game
+    aggregates = aggregates_markdown(atari_aggregates(rows, phase1_episodes=150, pairs=[("H1", "A")]), score_name="x")
+    improvement = next(x for x in aggregates.splitlines() if x.startswith("| H1 vs A |")).split(" | ")[1]
+    assert improvement == "0.47 [0.36, 0.59]" and improvement in section and improvement in readme
+    # the floor's purpose: every fit puts K or K - 1 options to use, K on 38 of 40; 39 of 40 within 0.05 nats
+    fits = []
+    for game in GAMES:
+        for seed in seeds:
+            with open(os.path.join(folder, game, f"seed{seed}", "phase2.json")) as f:
+                fits.append(json.load(f))
+    in_use = [options_in_use(d["option_usage"]) for d in fits]
+    assert len(fits) == 40 and all(n >= d["num_options"] - 1 for n, d in zip(in_use, fits))
+    assert sum(n == d["num_options"] for n, d in zip(in_use, fits)) == 38
+    largest = [max(d["option_usage"]) for d in fits]
+    assert f"{min(largest):.0%}"[:-1] == "20" and f"{max(largest):.0%}"[:-1] == "83"
+    within = _seeds_within(folder)
+    assert within == {**{game: "8 of 8" for game in GAMES}, "Gopher": "7 of 8"}
+    greedy = greedy_evaluation_markdown(folder, [("H1", "A")], phase1_episodes=150)
+    for game, figure in (("SpaceInvaders", "17.95 [1.18, 34.72]"), ("Pooyan", "-31.88 [-52.81, -10.94]")):
+        assert figure in next(x for x in greedy.splitlines() if x.startswith(f"| {game} |"))
+    usage = option_usage_markdown(folder)
+    durations = [float(x.split("|")[-2]) for x in usage.splitlines() if x.startswith(tuple(f"| {g} |" for g in GAMES))]
+    assert (min(durations), max(durations)) == (3.6, 41.7) and "3.6-41.7 steps per option" in section
+    # the same phase 1 as the run without the floor, episode for episode, on every game and seed
+    (tmp_path / "reference").mkdir()
+    reference = _kept_rows(os.path.join(ROOT, "results", "atari_faithful_cpu"), tmp_path / "reference")
+
+    def phase1(table):
+        return sorted((r["setting"], int(r["seed"]), int(r["episode"]), float(r["return"]), int(r["frames"]))
+                      for r in table if r["condition"] == "A" and int(r["episode"]) < 150)  # fmt: skip
+
+    assert phase1(rows) == phase1(reference) and len(phase1(rows)) == len(GAMES) * 8 * 150
