@@ -160,3 +160,33 @@ def test_segment_settings_keep_the_yaml():
     assert cfg.discovery.init == "segments" and list(cfg.discovery.num_cells) == [16]
     with pytest.raises(ValueError, match="segmentation.method must be one of"):
         segment_settings(_compose("segment", "segmentation.method=greedy"))
+
+
+def test_usage_floor_reaches_discover_options_and_is_refused_where_it_cannot_apply(monkeypatch, tmp_path):
+    """``discovery.usage_floor`` (issue 49): checked at the config's door, refused with a multi-level condition, and
+    passed to one-level discovery."""
+    from torchrl_options.experiments import gridworld
+
+    one_level = ["scale=tiny", "discovery.usage_floor=0.5", "conditions_to_run=[A,H1u]"]
+    assert gridworld_settings(_compose("four_rooms", *one_level))["discovery"]["usage_floor"] == 0.5
+    with pytest.raises(ValueError, match=r"discovery.usage_floor must be a share of the uniform usage 1/K in \(0, 1\), got 1.5"):
+        gridworld_settings(_compose("four_rooms", "scale=tiny", "discovery.usage_floor=1.5", "conditions_to_run=[A,H1u]"))
+    with pytest.raises(ValueError, match="discovery.usage_floor=0.5 applies to one-level discovery, but condition 'H2u'"):
+        gridworld_settings(_compose("four_rooms", "scale=tiny", "discovery.usage_floor=0.5", "conditions_to_run=[A,H2u]"))
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(gridworld, "discover_options", fake)
+    with pytest.raises(Stop):
+        gridworld.discover_cached(lambda: None, tmp_path / "o.pt", num_options=2, meta_control="uniform", seed=0,
+                                    discovery={"preset": "defaults", "usage_floor": 0.5})  # fmt: skip
+    assert seen["usage_floor"] == 0.5
+    with pytest.raises(ValueError, match="usage_floor applies to one-level discovery"):
+        gridworld.discover_hierarchy_cached(lambda: None, tmp_path / "h.pt", num_options=[2, 2], meta_control="uniform",
+                                            seed=0, discovery={"usage_floor": 0.5})  # fmt: skip

@@ -173,7 +173,8 @@ def discover_cached(
     data = trajectories() if callable(trajectories) else trajectories
     result = discover_options(
         data, num_options, meta_control=meta_control, num_iterations=_discovery_iterations(discovery), seed=seed,
-        progress=progress, return_info=True, desc=desc, **_discovery_kwargs(discovery),
+        progress=progress, return_info=True, desc=desc, usage_floor=discovery.get("usage_floor"),
+        **_discovery_kwargs(discovery),
     )  # fmt: skip
     final = result.history[-1] if result.history else {}
     with atomic_replace(path) as tmp:
@@ -201,6 +202,10 @@ def discover_hierarchy_cached(
     if path.exists():
         logger.info("hierarchy: loading %s", path)
         return load_hierarchy(path)
+    if discovery.get("usage_floor") is not None:
+        raise ValueError(
+            f"discovery.usage_floor applies to one-level discovery, got {discovery['usage_floor']} for levels {num_options}."
+        )
     data = trajectories() if callable(trajectories) else trajectories
     lower = _discovery_iterations(discovery)
     upper = lower if discovery.get("upper_level_iterations") is None else int(discovery["upper_level_iterations"])

@@ -21,7 +21,7 @@ from typing import Any, Dict, List, Optional
 
 from torchrl_options.agents import OptionsDQNConfig, OptionsPPOConfig
 from torchrl_options.checks import check_bool, check_choice, check_int, check_number, check_positive_number
-from torchrl_options.discovery import DiscoverySettings, PAPER_SETTINGS
+from torchrl_options.discovery import check_usage_floor, DiscoverySettings, PAPER_SETTINGS
 from torchrl_options.envs import GridWorldEnv
 from torchrl_options.experiments.recipe_config import (
     MISSING,
@@ -237,7 +237,8 @@ class DiscoveryFields:
     """The DDO settings of a ``discovery`` section (and of its ``paper:`` sub-section): ``preset`` (one of
     :data:`DISCOVERY_PRESETS`) gives what is left at ``None`` (:func:`discovery_kwargs`); ``num_iterations``
     (:func:`discovery_iterations`), ``upper_level_iterations`` (a hierarchy's upper levels; ``None``: as the
-    lowest). The others are :func:`~torchrl_options.discover_options`'s arguments of the same names."""
+    lowest). The others are :func:`~torchrl_options.discover_options`'s arguments of the same names
+    (``usage_floor``: one-level discovery only, so conditions with ``levels`` above 1 refuse it)."""
 
     num_options: Optional[int] = None
     preset: Optional[str] = None
@@ -252,6 +253,7 @@ class DiscoveryFields:
     m_steps: Optional[int] = None
     restarts: Optional[int] = None
     tol: Optional[float] = None
+    usage_floor: Optional[float] = None
 
     def check(self, name: str) -> None:
         """The settings as :class:`~torchrl_options.discovery.DiscoverySettings` (the library's checks and
@@ -261,6 +263,7 @@ class DiscoveryFields:
         check_int(self.upper_level_iterations, f"{name}.upper_level_iterations", minimum=0, allow_none=True)
         if self.lr is not None:
             check_positive_number(self.lr, f"{name}.lr")
+        check_usage_floor(self.usage_floor, f"{name}.usage_floor")
         settings = dataclasses.asdict(self)
         kwargs = discovery_kwargs(settings)
         try:
@@ -472,7 +475,14 @@ class GridWorldRecipeConfig:
         for name in self.settings_to_run:
             _entry(SettingSection, self.settings[name], f"settings.{name}").check(f"settings.{name}", algorithm)
         for name in self.conditions_to_run:
-            _entry(ConditionSection, self.conditions[name], f"conditions.{name}").check(f"conditions.{name}")
+            condition = _entry(ConditionSection, self.conditions[name], f"conditions.{name}")
+            condition.check(f"conditions.{name}")
+            if (condition.levels or 1) > 1 and self.discovery.usage_floor is not None:
+                raise ValueError(
+                    f"discovery.usage_floor={self.discovery.usage_floor} applies to one-level discovery, but condition "
+                    f"{name!r} discovers {condition.levels} levels; leave it out of conditions_to_run or set "
+                    "discovery.usage_floor=null."
+                )
         self.discovery.check("discovery")
         self.env.check("env")
         if self.demos is not None:
