@@ -12,7 +12,8 @@ Run (one command; ``torchrun`` starts the processes and the process group's rend
 :func:`~torchrl_options.data.write_demonstration_files`); without it, process 0 writes planted corridor
 demonstrations into ``<output_dir>/demonstrations`` first. Process 0 writes ``options.pt``
 (:func:`torchrl_options.load_options`) and ``metrics.json`` (processes, iterations, seconds, iterations per
-second, final log-likelihood per step) to ``output_dir``. Settings: ``recipes/config/discover_distributed.yaml``.
+second, final log-likelihood per step) to ``output_dir``. Settings: ``recipes/config/discover_distributed.yaml``, its schema
+:class:`~torchrl_options.experiments.discover_distributed_config.DiscoverDistributedConfig`.
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_options import discover_options, save_options
 from torchrl_options.data import demonstration_buffer, MANIFEST, open_demonstrations
-from torchrl_options.experiments.recipe_runner import recipe_guard
+from torchrl_options.experiments.discover_distributed_config import discover_distributed_settings
+from torchrl_options.experiments.recipe_runner import recipe_guard, run_recipe_main
 from torchrl_options.testing import write_planted_corridor
 
 logger = logging.getLogger("discover_distributed")
@@ -58,6 +60,7 @@ def _demonstrations(cfg: DictConfig, rank: int, world_size: int):
 
 def run(cfg: DictConfig) -> dict:
     """Runs the recipe in this process (one of ``WORLD_SIZE``); returns the metrics (written by process 0)."""
+    cfg = discover_distributed_settings(cfg)  # the schema's keys and types, every value checked, before any work
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
     torch.set_num_threads(cfg.threads)
@@ -110,4 +113,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe_main(main)  # Hydra's refusals (an unknown key, a wrong type) as one line too

@@ -39,3 +39,35 @@ def test_the_torchrun_command_runs_two_processes(tmp_path):
     one = _run([sys.executable, "recipes/discover_distributed.py"], tmp_path / "one")
     assert two["processes"] == 2
     assert two["log_likelihood_per_step"] == pytest.approx(one["log_likelihood_per_step"], abs=1e-4)
+
+
+@pytest.mark.parametrize(
+    "override, phrase",
+    [("discovery.init=kmean", "discovery.init must be one of 'random', 'kmeans', 'segments', 'auto', got 'kmean'"),
+     ("device=tpu", "device must be one of ('auto', 'cpu', 'cuda'), got 'tpu'"),
+     ("threads=0", "threads must be an int >= 1, got 0"),
+     ("+discovery.bogus=1", "bogus"),
+     ("discovery.num_options=two", "discovery.num_options")],
+)  # fmt: skip
+def test_the_schema_refuses_bad_settings_in_one_line(tmp_path, override, phrase):
+    """The recipe's settings go through its Hydra schema (issue 51 part 4): an unknown key, a wrong type or a value
+    out of range ends the run with one line naming it, before any process group or data."""
+    done = subprocess.run([sys.executable, "recipes/discover_distributed.py", override, f"output_dir={tmp_path / 'o'}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode != 0
+    assert phrase in done.stderr, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    assert not (tmp_path / "o" / "demonstrations").exists()
+
+
+def test_the_yaml_is_the_schema_defaults():
+    """Every key of recipes/config/discover_distributed.yaml is the schema's, with the schema's default."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments.discover_distributed_config import DiscoverDistributedConfig
+
+    yaml = OmegaConf.to_container(OmegaConf.load(ROOT / "recipes" / "config" / "discover_distributed.yaml"))
+    yaml = {k: v for k, v in yaml.items() if k not in ("defaults", "hydra")}
+    assert yaml == dataclasses.asdict(DiscoverDistributedConfig())
