@@ -248,6 +248,8 @@ KEPT_GRIDWORLD_FIGURES = [
                                      "exploration/H2u": "0.439 [0.374, 0.504]",
                                      "exploration/H1u - A": "+0.127 [+0.057, +0.198] | ahead",
                                      "exploration/H2u - A": "+0.115 [+0.035, +0.195] | ahead"}),
+    ("four_rooms_exploration_floor", {"exploration/A": "0.323 [0.280, 0.366]", "exploration/H1u": "0.493 [0.432, 0.555]",
+                                      "exploration/H1u - A": "+0.170 [+0.098, +0.242] | ahead"}),
     ("three_rooms_ours_1000", {"exploration/A": "0.036 [0.023, 0.050]", "exploration/H1u": "0.033 [0.002, 0.064]",
                                "exploration/H1u - A": "-0.003 [-0.036, +0.029] | no evidence"}),
     ("four_rooms_exploration_variants/segdef", {"exploration/H1u": "0.480 [0.385, 0.575]",
@@ -263,7 +265,8 @@ KEPT_GRIDWORLD_FIGURES = [
 ]
 SEEDS = {  # the others: 3
     "four_rooms_paper_1000": 15, "four_rooms_paper_5000_A": 15, "three_rooms_paper_1000": 10, "four_rooms_ppo_15seeds": 15,
-    "four_rooms_default_ours": 6, "four_rooms_exploration_ours": 15, "three_rooms_ours_1000": 10, "four_rooms_exploration_variants/segdef": 5,
+    "four_rooms_default_ours": 6, "four_rooms_exploration_ours": 15, "four_rooms_exploration_floor": 15,
+    "three_rooms_ours_1000": 10, "four_rooms_exploration_variants/segdef": 5,
     "four_rooms_exploration_variants/segdefH2": 5, "four_rooms_exploration_variants/greedydef": 4,
     "four_rooms_exploration_variants/segpaper": 5, "four_rooms_exploration_variants/epsall": 4,
 }
@@ -353,3 +356,35 @@ def test_kept_long_run_of_actions_only(folder, expected):
     assert "%+.3f [%+.3f, %+.3f]" % diff == expected
     with open(os.path.join(root, "docs", "experiments", "gridworld.md")) as f:
         assert expected in f.read()
+
+
+def test_kept_usage_floor_against_no_floor():
+    """The four-rooms exploration setting with ``discovery.usage_floor=0.5`` (issue 49) against the same protocol
+    without it: the same A episode for episode, and H1u's paired difference as docs/experiments/gridworld.md quotes."""
+    import csv
+    import gzip
+    import os
+
+    from torchrl_options.experiments import paired_difference_interval
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+    def finals(folder, condition):
+        with gzip.open(os.path.join(root, "results", folder, "results.csv.gz"), "rt") as f:
+            rows = [r for r in csv.DictReader(f) if r["setting"] == "exploration" and r["condition"] == condition]
+        by_seed = {}
+        for r in rows:
+            by_seed.setdefault(int(r["seed"]), []).append((int(r["episode"]), float(r["return"])))
+        return {seed: sorted(v) for seed, v in by_seed.items()}
+
+    floor, ours = finals("four_rooms_exploration_floor", "A"), finals("four_rooms_exploration_ours", "A")
+    assert floor == {s: ours[s] for s in floor} and len(floor) == 15
+    with_floor, without = finals("four_rooms_exploration_floor", "H1u"), finals("four_rooms_exploration_ours", "H1u")
+    seeds = sorted(with_floor)
+    mean, low, high = paired_difference_interval(
+        [sum(x for _, x in with_floor[s][-100:]) / 100 for s in seeds], [sum(x for _, x in without[s][-100:]) / 100 for s in seeds]
+    )
+    figure = f"{mean:+.3f} [{low:+.3f}, {high:+.3f}]"
+    assert figure == "+0.043 [-0.004, +0.089]"
+    with open(os.path.join(root, "docs", "experiments", "gridworld.md")) as f:
+        assert figure in f.read()
