@@ -193,3 +193,22 @@ def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
     assert floor["ddo"]["f1_w2"][2] < floor["random"]["f1_w2"][1]
     assert floor["ddo"]["label_accuracy"][0] < floor["one_option"]["label_accuracy"][0]
     assert floor["max_usage"][0] > 0.8
+
+
+def test_default_scale_rl_table_is_the_kept_run(tmp_path):
+    """The default scale with 10 RL seeds, PPO and DQN, same level and transfer on UnlockPickup (issue 50): every
+    table line on the page is the kept run's, and the verdicts the page states in words hold on the records."""
+    folder = os.path.join(KEPT, "default")
+    csv_path = tmp_path / "results.csv"
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
+    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
+    assert len(lines) == 6 and not _quoted(lines, _page()), _quoted(lines, _page())
+    by = {s.condition: s for s in summaries}
+    assert all(s.seeds == list(range(10)) for s in summaries)
+    for algorithm in ("ppo", "dqn"):
+        assert by[f"{algorithm}-A"].reached == 0
+        assert by[f"{algorithm}-H1"].diff_final[1] > 0 and by[f"{algorithm}-H1"].reached == 8  # same level: ahead
+        low, high = by[f"{algorithm}-H1t"].diff_final[1:]
+        assert low <= 0 <= high and by[f"{algorithm}-H1t"].reached == 0  # transfer: no evidence either way
