@@ -47,7 +47,9 @@ def test_the_torchrun_command_runs_two_processes(tmp_path):
      ("device=tpu", "device must be one of ('auto', 'cpu', 'cuda'), got 'tpu'"),
      ("threads=0", "threads must be an int >= 1, got 0"),
      ("+discovery.bogus=1", "bogus"),
-     ("discovery.num_options=two", "discovery.num_options")],
+     ("discovery.num_options=two", "discovery.num_options"),
+     ("discovery.lr=-0.1", "discovery.lr must be a positive finite number, got -0.1"),
+     ("discovery.num_cells=[4,-1]", "discovery.num_cells must be one positive int or a non-empty sequence of them")],
 )  # fmt: skip
 def test_the_schema_refuses_bad_settings_in_one_line(tmp_path, override, phrase):
     """The recipe's settings go through its Hydra schema (issue 51 part 4): an unknown key, a wrong type or a value

@@ -13,9 +13,10 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from torchrl_options.checks import check_bool, check_choice, check_int
+from torchrl_options.checks import check_bool, check_choice, check_int, check_positive_number
 from torchrl_options.discovery import DiscoverySettings
 from torchrl_options.experiments.recipe_config import structured_settings
+from torchrl_options.modules import hidden_sizes
 
 __all__ = ["DiscoverDistributedConfig", "discover_distributed_settings", "store_discover_distributed_config"]
 
@@ -55,12 +56,13 @@ class DistributedDiscovery:
     seed: int = 0
 
     def check(self, name: str) -> None:
-        """The settings as :class:`~torchrl_options.discovery.DiscoverySettings` (the library's checks)."""
+        """The settings as :class:`~torchrl_options.discovery.DiscoverySettings` (the library's checks), the
+        learning rate and the options' hidden sizes (checked where the networks are built)."""
+        check_positive_number(self.lr, f"{name}.lr")
         values = dataclasses.asdict(self)
-        if isinstance(values["num_cells"], list):
-            values["num_cells"] = tuple(values["num_cells"])
+        values["num_cells"] = tuple(hidden_sizes(values["num_cells"], f"{name}.num_cells"))
         try:
-            DiscoverySettings(**values, distributed=True)
+            DiscoverySettings(**values)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{name}.{err}") from None
 
