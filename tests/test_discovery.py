@@ -69,6 +69,22 @@ def test_learned_meta_control_trains_and_returns_info():
     assert result.final_log_likelihood_per_step == result.history[-1]["log_likelihood_per_step"]
 
 
+def test_log_likelihood_is_the_returned_modules_own():
+    """``result.log_likelihood_per_step`` is the returned modules' exact likelihood (DDOLoss on the same data), which
+    with the stopping rule is the best recorded iteration's (the modules are restored there), whatever the last
+    record says (``final_log_likelihood_per_step``, the training curve's end)."""
+    data = planted_corridor_demonstrations(8, 40, seed=1)
+    for meta_control in ("uniform", "learned"):
+        result = discover_options(data, 2, meta_control=meta_control, num_cells=4, num_iterations=60, lr=0.2, seed=0,
+                                  progress=False, return_info=True)  # fmt: skip
+        with torch.no_grad():
+            exact = float(DDOLoss(result.options, result.meta_control)(data)["log_likelihood_per_step"])
+        assert result.log_likelihood_per_step == pytest.approx(exact, abs=1e-5)
+        best = max(h["log_likelihood_per_step"] for h in result.history)
+        assert result.log_likelihood_per_step == pytest.approx(best, abs=1e-4)
+        assert result.final_log_likelihood_per_step <= result.log_likelihood_per_step + 1e-4
+
+
 def test_seeded_runs_are_reproducible():
     data = planted_corridor_demonstrations(8, 30, seed=2)
     kw = dict(num_cells=4, num_iterations=10, batch_size=4, seed=3, progress=False)

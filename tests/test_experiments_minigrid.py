@@ -324,11 +324,13 @@ def test_scales_compose():
 
     from torchrl_options.experiments.minigrid import MiniGridConfig
 
-    for scale in ("tiny", "default", "paper"):
+    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey"):
         cfg = _config([f"minigrid_scale={scale}"])
         config = MiniGridConfig.from_dict(OmegaConf.to_container(cfg.minigrid))
         assert cfg.scale_name == scale and config.conditions
     assert _config(["minigrid_scale=paper"]).minigrid.rl_seeds >= 10
+    doorkey = _config(["minigrid_scale=doorkey"]).minigrid  # transfer only: the bot cannot play DoorKey
+    assert doorkey.rl_level.startswith("MiniGrid-") and not any(c.endswith("-H1") for c in doorkey.conditions)
 
 
 @needs_minigrid

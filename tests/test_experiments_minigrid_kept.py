@@ -212,3 +212,36 @@ def test_default_scale_rl_table_is_the_kept_run(tmp_path):
         assert by[f"{algorithm}-H1"].diff_final[1] > 0 and by[f"{algorithm}-H1"].reached == 8  # same level: ahead
         low, high = by[f"{algorithm}-H1t"].diff_final[1:]
         assert low <= 0 <= high and by[f"{algorithm}-H1t"].reached == 0  # transfer: no evidence either way
+
+
+def test_doorkey_transfer_table_is_the_kept_run(tmp_path):
+    """Transfer to MiniGrid-DoorKey-8x8 from UnlockLocal's options (issue 50): every table line on the page is the
+    kept run's, and the verdicts in words hold on the records (ahead with PPO and DQN, 8 and 7 of 10 seeds reach 0.5,
+    actions only none)."""
+    folder = os.path.join(KEPT, "doorkey")
+    csv_path = tmp_path / "results.csv"
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
+    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
+    assert len(lines) == 4 and not _quoted(lines, _page()), _quoted(lines, _page())
+    by = {s.condition: s for s in summaries}
+    assert all(s.seeds == list(range(10)) for s in summaries)
+    for algorithm, reached in (("ppo", 8), ("dqn", 7)):
+        assert by[f"{algorithm}-A"].reached == 0
+        assert by[f"{algorithm}-H1t"].diff_final[1] > 0 and by[f"{algorithm}-H1t"].reached == reached
+
+
+def test_truth_likelihood_claims_hold_on_the_kept_records():
+    """The likelihood of the bot's own structure against DDO's fit, as the page states it: with the uniform
+    meta-control the truth's subgoals are less likely than DDO's fit on every cell (by 0.33-0.97 nats per step), with
+    a learned one more likely on 2 of 9, and one option alone within 0.1 nats of DDO or above on every cell."""
+    with open(os.path.join(KEPT, "segmentation", "truth_likelihood.jsonl")) as f:
+        records = [json.loads(line) for line in f]
+    assert len(records) == 9 and len({r["level"] for r in records}) == 3
+    gaps = [r["models"]["ddo"]["marginal"] - r["models"]["truth-subgoal"]["marginal"] for r in records]
+    assert min(gaps) > 0 and round(min(gaps), 2) == 0.33 and round(max(gaps), 2) == 0.97
+    learned = [r["models"]["truth-subgoal-learned"]["marginal"] > r["models"]["ddo-learned"]["marginal"] for r in records]
+    assert sum(learned) == 2
+    assert all(r["models"]["one-option"]["marginal"] > r["models"]["ddo"]["marginal"] - 0.1 for r in records)
+    assert f"on {sum(learned)} of 9 cells" in _page()

@@ -56,12 +56,15 @@ class OptionDiagnostics:
         unused (list of int): options active at less than ``min_usage`` of the steps.
         warnings (list of str): one sentence per problem found, also logged as warnings by
             :func:`~torchrl_options.discover_options`.
+        log_likelihood_per_step (float): the exact log-likelihood of the demonstrations under the options, per
+            valid step (the forward pass the usage comes from).
     """
 
     usage: list[float]
     duplicates: list[tuple[int, int]] = field(default_factory=list)
     unused: list[int] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    log_likelihood_per_step: float = math.nan
 
 
 def option_diagnostics(
@@ -117,6 +120,7 @@ def option_diagnostics(
             mask, log_probs.get("terminal", False),
         )  # fmt: skip
         u = fb.u[mask].double()  # [N, K]
+        log_likelihood_per_step = float(fb.log_likelihood.double().sum() / mask.sum().clamp_min(1))
         usage = (u.sum(0) / u.sum().clamp_min(1e-30)).tolist()
         lp = log_pi[mask].double().clamp_min(-30.0)  # [N, K]
         term = log_probs["log_term"].detach()[mask].double().exp()
@@ -141,7 +145,8 @@ def option_diagnostics(
             f"option pairs {duplicates} act and terminate alike on the demonstrations (duplicates): the run may be "
             "stuck in a local optimum; try more restarts or fewer options."
         )
-    return OptionDiagnostics(usage=usage, duplicates=duplicates, unused=unused, warnings=warnings)
+    return OptionDiagnostics(usage=usage, duplicates=duplicates, unused=unused, warnings=warnings,
+                             log_likelihood_per_step=log_likelihood_per_step)
 
 
 def restart_disagreement(log_likelihoods: Sequence[float], *, tol: float = 0.02) -> str | None:

@@ -80,7 +80,11 @@ class DiscoveryResult:
         options: the trained options module.
         meta_control: the trained meta-control module, ``None`` for the uniform one.
         history (list of dict): per iteration, ``loss_ddo`` and the diagnostics of :class:`DDOLoss` (at the
-            parameters before the iteration's steps).
+            parameters before the iteration's steps). With the stopping rule the returned modules are those of the
+            best recorded iteration, which need not be the last one.
+        log_likelihood_per_step (float or None): the exact log-likelihood per step of the demonstrations under the
+            returned modules (the unpenalised likelihood with ``usage_floor``); ``None`` for trajectories streamed
+            from a replay buffer (see :attr:`final_log_likelihood_per_step`).
         converged (bool or None): with ``tol``, whether the stopping rule ended training before
             ``num_iterations``; ``None`` without ``tol``.
         restart_log_likelihoods (list of float): with ``restarts > 1``, each start's log-likelihood per step after
@@ -112,9 +116,13 @@ class DiscoveryResult:
     num_cells: int | None = None
     width_log_likelihoods: dict[int, float] = field(default_factory=dict)
     split_merge_moves: list[dict] = field(default_factory=list)
+    log_likelihood_per_step: float | None = None
 
     @property
     def final_log_likelihood_per_step(self) -> float:
+        """The last training record's log-likelihood per step (``history[-1]``): the training curve's end. When
+        the stopping rule restored an earlier, better iteration it is below the returned modules' own
+        :attr:`log_likelihood_per_step`."""
         return self.history[-1]["log_likelihood_per_step"] if self.history else float("nan")
 
 
@@ -300,10 +308,12 @@ def best_of_starts(
 
 def summarize(
     loss_module: torch.nn.Module, data: TensorDictBase, history: list[dict], restart_lls: list[float],
-    settings: DiscoverySettings,
+    settings: DiscoverySettings, *, streamed: bool = False,
 ) -> DiscoveryResult:  # fmt: skip
     """The result of a fit: the trained modules, the stopping rule's verdict, and the label-free diagnostics of the
-    options on the demonstrations (usage, duplicates, starts that disagree), logged as warnings."""
+    options on the demonstrations (usage, duplicates, starts that disagree, the returned modules' log-likelihood;
+    ``streamed``: ``data`` is a buffer's evaluation set, whose likelihood is not the demonstrations'), logged as
+    warnings."""
     with torch.no_grad():
         diagnostics = option_diagnostics(loss_module.log_probabilities(data))
     disagreement = restart_disagreement(restart_lls)
@@ -316,7 +326,7 @@ def summarize(
     return DiscoveryResult(
         options=loss_module.options, meta_control=loss_module.meta_control, history=history, converged=converged,
         restart_log_likelihoods=restart_lls, option_usage=diagnostics.usage, duplicate_options=diagnostics.duplicates,
-        warnings=warnings,
+        warnings=warnings, log_likelihood_per_step=None if streamed else diagnostics.log_likelihood_per_step,
     )  # fmt: skip
 
 
@@ -349,7 +359,7 @@ def fit_starts(
     )  # fmt: skip
     if settings.split_merge:
         check_split_merge_options(start.loss_module.options, settings.num_options)
-    return summarize(start.loss_module, batch.data, history, restart_lls, settings)
+    return summarize(start.loss_module, batch.data, history, restart_lls, settings, streamed=batch.buffer is not None)
 
 
 def improve_by_split_merge(

@@ -146,7 +146,8 @@ def segmentation_cell(
                    **({"num_cells": num_cells} if num_cells is not None else {})},
         "num_steps": int(data["collector", "mask"].sum()),
         "fit": {
-            "log_likelihood_per_step": result.final_log_likelihood_per_step,
+            "log_likelihood_per_step": result.final_log_likelihood_per_step,  # the last training record
+            "model_log_likelihood_per_step": result.log_likelihood_per_step,  # the returned options' own
             "iterations": len(result.history),
             "cpu_seconds": seconds,
             "warnings": list(result.warnings),
