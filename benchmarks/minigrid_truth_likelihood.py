@@ -13,8 +13,8 @@ For each level and seed: 100 bot demonstrations (the layouts of ``segmentation_c
 - the same with a learned meta-control (``-learned``: ``discover_options(meta_control="learned")``, and a
   :class:`~torchrl_options.MetaControlMLP` fitted to the bot's choices at each segment start).
 
-Every model is then scored by the same marginal likelihood, :class:`~torchrl_options.DDOLoss`'s
-``log_likelihood_per_step`` on the same demonstrations (the quantity DDO maximises). If the truth's structure scores
+Every model is then scored by the same marginal likelihood, ``held_out_log_likelihood`` (:class:`~torchrl_options.DDOLoss`'s
+exact forward pass) on the same demonstrations (the quantity DDO maximises). If the truth's structure scores
 below what DDO finds, no maximum-likelihood fit of these options can be expected to recover it.
 
     OMP_NUM_THREADS=1 python benchmarks/minigrid_truth_likelihood.py --level BabyAI-UnlockPickup-v0 --seeds 3 \
@@ -30,6 +30,7 @@ import os
 import time
 
 import torch
+from tensordict import TensorDict
 
 
 def _fit_with_labels(data, labels: torch.Tensor, switches: torch.Tensor, num_options: int, num_cells: int,
@@ -59,8 +60,9 @@ def _fit_with_labels(data, labels: torch.Tensor, switches: torch.Tensor, num_opt
     params = list(options.parameters()) + ([] if meta is None else list(meta.parameters()))
     opt = torch.optim.Adam(params, lr=0.01)
     # the meta-control chooses at step 0 and after every termination: where a new label segment starts
-    chosen = (switches | torch.nn.functional.pad(torch.ones(mask.shape[0], 1, dtype=torch.bool), (0, mask.shape[1] - 1))) & mask
-    from tensordict import TensorDict
+    chosen = switches.clone()
+    chosen[:, 0] = True
+    chosen &= mask
 
     def complete_ll() -> torch.Tensor:
         out = options(TensorDict(observation=obs, batch_size=mask.shape))
@@ -86,10 +88,9 @@ def _fit_with_labels(data, labels: torch.Tensor, switches: torch.Tensor, num_opt
 
 
 def _marginal(options, data, meta_control=None) -> float:
-    from torchrl_options import DDOLoss
+    from torchrl_options.discovery.width import held_out_log_likelihood
 
-    with torch.no_grad():
-        return float(DDOLoss(options, meta_control, diagnostics=False)(data)["log_likelihood_per_step"])
+    return held_out_log_likelihood(options, meta_control, data)
 
 
 def truth_likelihood_cell(level: str, seed: int, *, num_demonstrations: int = 100, num_cells: int = 8,

@@ -144,19 +144,20 @@ def test_the_verdicts_in_words_hold_on_the_records():
     assert held["ddo"]["label_accuracy"][0] < held["one_option"]["label_accuracy"][0]
 
 
-def _rl_rows(tmp_path):
+def _kept_rl_table(folder: str, tmp_path, num_lines: int) -> dict:
+    """The kept RL run in ``folder``: asserts that its ``num_lines`` summary table lines are on the page, and returns
+    its summaries by condition."""
     csv_path = tmp_path / "results.csv"
-    with gzip.open(os.path.join(RL_FOLDER, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
+    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
         shutil.copyfileobj(src, dst)
-    return ResultsLog(csv_path).rows()
+    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
+    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
+    assert len(lines) == num_lines and not _quoted(lines, _page()), _quoted(lines, _page())
+    return {s.condition: s for s in summaries}
 
 
 def test_rl_table_is_the_kept_run(tmp_path):
-    rows = _rl_rows(tmp_path)
-    summaries = rl_summary(rows, target=0.5, window=50)
-    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
-    assert len(lines) == 2 and not _quoted(lines, _page()), _quoted(lines, _page())
-    by = {s.condition: s for s in summaries}
+    by = _kept_rl_table(RL_FOLDER, tmp_path, 2)
     assert by["ppo-A"].seeds == by["ppo-H1"].seeds and len(by["ppo-A"].seeds) >= 3
     # the page's verdict: options from the level's demonstrations reach the target on every seed, actions only on none
     assert by["ppo-H1"].reached == len(by["ppo-H1"].seeds) and by["ppo-A"].reached == 0
@@ -198,15 +199,8 @@ def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
 def test_default_scale_rl_table_is_the_kept_run(tmp_path):
     """The default scale with 10 RL seeds, PPO and DQN, same level and transfer on UnlockPickup (issue 50): every
     table line on the page is the kept run's, and the verdicts the page states in words hold on the records."""
-    folder = os.path.join(KEPT, "default")
-    csv_path = tmp_path / "results.csv"
-    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
-        shutil.copyfileobj(src, dst)
-    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
-    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
-    assert len(lines) == 6 and not _quoted(lines, _page()), _quoted(lines, _page())
-    by = {s.condition: s for s in summaries}
-    assert all(s.seeds == list(range(10)) for s in summaries)
+    by = _kept_rl_table(os.path.join(KEPT, "default"), tmp_path, 6)
+    assert all(s.seeds == list(range(10)) for s in by.values())
     for algorithm in ("ppo", "dqn"):
         assert by[f"{algorithm}-A"].reached == 0
         assert by[f"{algorithm}-H1"].diff_final[1] > 0 and by[f"{algorithm}-H1"].reached == 8  # same level: ahead
@@ -218,15 +212,8 @@ def test_doorkey_transfer_table_is_the_kept_run(tmp_path):
     """Transfer to MiniGrid-DoorKey-8x8 from UnlockLocal's options (issue 50): every table line on the page is the
     kept run's, and the verdicts in words hold on the records (ahead with PPO and DQN, 8 and 7 of 10 seeds reach 0.5,
     actions only none)."""
-    folder = os.path.join(KEPT, "doorkey")
-    csv_path = tmp_path / "results.csv"
-    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
-        shutil.copyfileobj(src, dst)
-    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
-    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
-    assert len(lines) == 4 and not _quoted(lines, _page()), _quoted(lines, _page())
-    by = {s.condition: s for s in summaries}
-    assert all(s.seeds == list(range(10)) for s in summaries)
+    by = _kept_rl_table(os.path.join(KEPT, "doorkey"), tmp_path, 4)
+    assert all(s.seeds == list(range(10)) for s in by.values())
     for algorithm, reached in (("ppo", 8), ("dqn", 7)):
         assert by[f"{algorithm}-A"].reached == 0
         assert by[f"{algorithm}-H1t"].diff_final[1] > 0 and by[f"{algorithm}-H1t"].reached == reached
