@@ -131,7 +131,8 @@ class CollectorTraining:
         ``config.frames_per_batch`` (which the envs fill exactly). ``callback(agent, batch)`` is called after every
         collector batch (logging, evaluation, checkpoints); when it returns ``True`` training stops there (e.g.
         after a number of episodes). Can be called again to continue training (the collector then restarts the
-        episodes), also after ``load_state_dict``.
+        episodes), also after ``load_state_dict``. Torch's thread count is as the caller left it afterwards (TorchRL
+        raises it when its collector closes a batched env).
         """
         check_train_arguments(total_frames, callback)
         config = self.config
@@ -159,6 +160,11 @@ class CollectorTraining:
         collector.set_seed(config.seed + self.frames)
         seed_executors(self.env, config.seed + self.frames)
         self._start_episodes()  # the collector starts new episodes
+        # TorchRL's Collector closes the env once its frame budget is spent, and closing a SerialEnv / ParallelEnv
+        # sets torch's thread count to min(the count when torchrl was imported, the count now + its workers): after
+        # train() a process that asked for 1 thread would run on 2 or more (several agents in processes sharing a
+        # machine then oversubscribe its cores: 7x slower MiniGrid cells on 2 cores). The caller's count is kept.
+        threads = torch.get_num_threads()
         try:
             for batch in collector:
                 self._record_episodes(batch)  # counts from the frames before the batch
@@ -169,6 +175,8 @@ class CollectorTraining:
                     break
         finally:
             collector.shutdown(close_env=False)
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
         return self.log
 
     def _collector_policy(self) -> nn.Module:
