@@ -17,6 +17,7 @@ from torchrl_options.experiments.minigrid.config import MiniGridConfig
 from torchrl_options.experiments.sweep import Cell, CellResult
 
 __all__ = [
+    "episode_cut_warning",
     "load_minigrid_options",
     "minigrid_cells",
     "level_options",
@@ -95,6 +96,41 @@ def level_options(level: str, seed: int, config: MiniGridConfig, out_dir: str) -
                     "label_accuracy": record["subgoal"]["ddo"]["label_accuracy"]}  # fmt: skip
         save_minigrid_options(options.cpu(), path, metadata)
         return options, metadata
+
+
+def episode_cut_warning(config: MiniGridConfig) -> str | None:
+    """Why the RL cells' checkpoint chunks are too short for ``rl_level``'s episodes, or ``None`` when they are not.
+
+    A cell trains in chunks of about ``checkpoint_every`` frames, each a fresh ``train`` call that restarts the envs'
+    episodes (so that a resumed cell is the uninterrupted one). An episode still running at a chunk's end is cut
+    there and never recorded. Those are mostly the long, failed ones: the success rate is then biased up, and the
+    agents learn from episodes shorter than the level's limit. With ``checkpoint_every / num_envs`` steps per env and
+    chunk against an episode limit ``L`` (``max_episode_steps``, else the level's own), fewer than ``10 L`` is
+    flagged; a cell of a single chunk (``checkpoint_every >= rl_frames``) never cuts.
+
+    Examples:
+        >>> episode_cut_warning(MiniGridConfig(rl_level="BabyAI-UnlockPickup-v0")) is None  # doctest: +SKIP
+        True
+    """
+    if config.checkpoint_every >= config.rl_frames:
+        return None
+    limit = config.max_episode_steps
+    if limit is None:
+        from torchrl_options.envs.minigrid import make_minigrid_gym
+
+        env = make_minigrid_gym(config.rl_level)
+        limit = int(env.unwrapped.max_steps)
+        env.close()
+    steps = config.checkpoint_every // config.num_envs
+    if steps >= 10 * limit:
+        return None
+    return (
+        f"checkpoint_every={config.checkpoint_every} frames over num_envs={config.num_envs} envs gives each env "
+        f"{steps} steps per chunk, against {limit}-step episodes on {config.rl_level}: every chunk restarts the "
+        "episodes, so the ones still running at its end (mostly failures) are cut and not recorded, which biases "
+        f"the success rate up. Set checkpoint_every to at least {10 * limit * config.num_envs} or to rl_frames "
+        f"({config.rl_frames}: one chunk per cell)."
+    )
 
 
 def minigrid_cells(config: MiniGridConfig) -> list[Cell]:

@@ -21,7 +21,12 @@ def run_minigrid(settings: dict, *, out_dir: str, backend: str = "serial", num_w
     settings is refused unless ``allow_changed_settings``."""
     from torchrl_options.experiments import check_run_settings, ResultsLog, run_sweep
     from torchrl_options.experiments.minigrid.config import MiniGridConfig
-    from torchrl_options.experiments.minigrid.pipeline import level_options, minigrid_cells, run_minigrid_cell
+    from torchrl_options.experiments.minigrid.pipeline import (
+        episode_cut_warning,
+        level_options,
+        minigrid_cells,
+        run_minigrid_cell,
+    )
 
     config = MiniGridConfig.from_dict(settings)
     out_dir = os.path.abspath(out_dir)
@@ -47,6 +52,9 @@ def run_minigrid(settings: dict, *, out_dir: str, backend: str = "serial", num_w
             bar.close()
     results = ResultsLog(os.path.join(out_dir, "results.csv"))
     cells = minigrid_cells(config)
+    cut = episode_cut_warning(config) if cells else None
+    if cut is not None:
+        logger.warning("%s", cut)
     rl_bar = None
     if progress and cells:
         from tqdm.auto import tqdm
