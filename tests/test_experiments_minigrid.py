@@ -324,13 +324,35 @@ def test_scales_compose():
 
     from torchrl_options.experiments.minigrid import MiniGridConfig
 
-    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey"):
+    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16"):
         cfg = _config([f"minigrid_scale={scale}"])
         config = MiniGridConfig.from_dict(OmegaConf.to_container(cfg.minigrid))
         assert cfg.scale_name == scale and config.conditions
     assert _config(["minigrid_scale=paper"]).minigrid.rl_seeds >= 10
     doorkey = _config(["minigrid_scale=doorkey"]).minigrid  # transfer only: the bot cannot play DoorKey
     assert doorkey.rl_level.startswith("MiniGrid-") and not any(c.endswith("-H1") for c in doorkey.conditions)
+
+
+@needs_minigrid
+def test_episode_cut_warning_flags_short_chunks_and_no_shipped_scale():
+    """Each checkpoint chunk of an RL cell restarts the episodes: chunks shorter than ten of the level's episodes per
+    env are flagged, naming the setting and the least value that passes; no experiment scale is flagged (the tiny
+    test scale is, on purpose: its cells resume from mid-cell checkpoints)."""
+    from omegaconf import OmegaConf
+
+    from torchrl_options.experiments.minigrid import MiniGridConfig
+    from torchrl_options.experiments.minigrid.pipeline import episode_cut_warning
+
+    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16"):
+        config = MiniGridConfig.from_dict(OmegaConf.to_container(_config([f"minigrid_scale={scale}"]).minigrid))
+        assert (episode_cut_warning(config) is None) == (scale != "tiny"), scale
+    # DoorKey-16x16's 2560-step episodes against 10240-frame chunks over 4 envs: one episode per env per chunk
+    short = MiniGridConfig(rl_level="MiniGrid-DoorKey-16x16-v0", conditions=["ppo-A"], rl_frames=50_000,
+                           checkpoint_every=10_240)  # fmt: skip
+    message = episode_cut_warning(short)
+    assert "checkpoint_every=10240" in message and "2560-step episodes" in message and "102400" in message
+    assert episode_cut_warning(MiniGridConfig(**{**short.__dict__, "checkpoint_every": 102_400})) is None
+    assert episode_cut_warning(MiniGridConfig(**{**short.__dict__, "max_episode_steps": 256})) is None
 
 
 @needs_minigrid

@@ -144,14 +144,19 @@ def test_the_verdicts_in_words_hold_on_the_records():
     assert held["ddo"]["label_accuracy"][0] < held["one_option"]["label_accuracy"][0]
 
 
-def _kept_rl_table(folder: str, tmp_path, num_lines: int) -> dict:
-    """The kept RL run in ``folder``: asserts that its ``num_lines`` summary table lines are on the page, and returns
-    its summaries by condition."""
+def _kept_rows(path: str, tmp_path) -> list:
+    """The rows of a kept ``results.csv.gz``."""
     csv_path = tmp_path / "results.csv"
-    with gzip.open(os.path.join(folder, "results.csv.gz"), "rb") as src, open(csv_path, "wb") as dst:
+    with gzip.open(path, "rb") as src, open(csv_path, "wb") as dst:
         shutil.copyfileobj(src, dst)
-    summaries = rl_summary(ResultsLog(csv_path).rows(), target=0.5, window=50)
-    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=50))
+    return ResultsLog(csv_path).rows()
+
+
+def _kept_rl_table(folder: str, tmp_path, num_lines: int, window: int = 50) -> dict:
+    """The kept RL run in ``folder``: asserts that its ``num_lines`` summary table lines (success rates over
+    ``window`` episodes) are on the page, and returns its summaries by condition."""
+    summaries = rl_summary(_kept_rows(os.path.join(folder, "results.csv.gz"), tmp_path), target=0.5, window=window)
+    lines = _table_lines(rl_summary_markdown(summaries, target=0.5, window=window))
     assert len(lines) == num_lines and not _quoted(lines, _page()), _quoted(lines, _page())
     return {s.condition: s for s in summaries}
 
@@ -210,13 +215,30 @@ def test_default_scale_rl_table_is_the_kept_run(tmp_path):
 
 def test_doorkey_transfer_table_is_the_kept_run(tmp_path):
     """Transfer to MiniGrid-DoorKey-8x8 from UnlockLocal's options (issue 50): every table line on the page is the
-    kept run's, and the verdicts in words hold on the records (ahead with PPO and DQN, 8 and 7 of 10 seeds reach 0.5,
+    kept run's, and the verdicts in words hold on the records (ahead with PPO and DQN, 8 and 5 of 10 seeds reach 0.5,
     actions only none)."""
     by = _kept_rl_table(os.path.join(KEPT, "doorkey"), tmp_path, 4)
     assert all(s.seeds == list(range(10)) for s in by.values())
-    for algorithm, reached in (("ppo", 8), ("dqn", 7)):
+    for algorithm, reached in (("ppo", 8), ("dqn", 5)):
         assert by[f"{algorithm}-A"].reached == 0
         assert by[f"{algorithm}-H1t"].diff_final[1] > 0 and by[f"{algorithm}-H1t"].reached == reached
+
+
+def test_doorkey16_transfer_table_is_the_kept_run(tmp_path):
+    """Transfer to MiniGrid-DoorKey-16x16 (PPO, 10 seeds, one chunk per cell): the page's table and verdicts, and the
+    episode counts of the first run, whose 10,240-frame checkpoint chunks cut the failed episodes."""
+    folder = os.path.join(KEPT, "doorkey16")
+    by = _kept_rl_table(folder, tmp_path, 2, window=10)
+    assert all(s.seeds == list(range(10)) for s in by.values())
+    assert by["ppo-A"].reached == 0 and by["ppo-H1t"].reached == 7 and by["ppo-H1t"].diff_final[1] > 0
+    page = _page()
+    for name, counts in (("results.csv.gz", {"ppo-A": (4, 163), "ppo-H1t": (90, 229)}),
+                         ("chunked_results.csv.gz", {"ppo-A": (0, 160), "ppo-H1t": (102, 206)})):  # fmt: skip
+        rows = _kept_rows(os.path.join(folder, name), tmp_path)
+        for condition, (wins, episodes) in counts.items():
+            returns = [float(r["return"]) for r in rows if r["condition"] == condition]
+            assert (sum(x > 0 for x in returns), len(returns)) == (wins, episodes), (name, condition)
+            assert f"{wins} of {episodes}" in page, (name, condition)
 
 
 def test_truth_likelihood_claims_hold_on_the_kept_records():
