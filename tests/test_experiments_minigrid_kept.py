@@ -225,14 +225,17 @@ def test_doorkey_transfer_table_is_the_kept_run(tmp_path):
 
 
 def test_doorkey16_transfer_table_is_the_kept_run(tmp_path):
-    """Transfer to MiniGrid-DoorKey-16x16 (PPO, 10 seeds, one chunk per cell): the page's table and verdicts, and the
-    episode counts of the first run, whose 10,240-frame checkpoint chunks cut the failed episodes."""
+    """Transfer to MiniGrid-DoorKey-16x16 (PPO and DQN, 10 seeds, one chunk per cell): the page's table and verdicts,
+    and the episode counts of the first run (PPO), whose 10,240-frame checkpoint chunks cut the failed episodes."""
     folder = os.path.join(KEPT, "doorkey16")
-    by = _kept_rl_table(folder, tmp_path, 2, window=10)
+    by = _kept_rl_table(folder, tmp_path, 4, window=10)
     assert all(s.seeds == list(range(10)) for s in by.values())
-    assert by["ppo-A"].reached == 0 and by["ppo-H1t"].reached == 7 and by["ppo-H1t"].diff_final[1] > 0
+    for algorithm in ("ppo", "dqn"):
+        assert by[f"{algorithm}-A"].reached == 0 and by[f"{algorithm}-H1t"].reached == 7
+        assert by[f"{algorithm}-H1t"].diff_final[1] > 0
     page = _page()
-    for name, counts in (("results.csv.gz", {"ppo-A": (4, 163), "ppo-H1t": (90, 229)}),
+    kept = {"ppo-A": (4, 163), "ppo-H1t": (90, 229), "dqn-A": (4, 162), "dqn-H1t": (119, 238)}
+    for name, counts in (("results.csv.gz", kept),
                          ("chunked_results.csv.gz", {"ppo-A": (0, 160), "ppo-H1t": (102, 206)})):  # fmt: skip
         rows = _kept_rows(os.path.join(folder, name), tmp_path)
         for condition, (wins, episodes) in counts.items():
