@@ -324,7 +324,7 @@ def test_scales_compose():
 
     from torchrl_options.experiments.minigrid import MiniGridConfig
 
-    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16"):
+    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16", "keycorridor"):
         cfg = _config([f"minigrid_scale={scale}"])
         config = MiniGridConfig.from_dict(OmegaConf.to_container(cfg.minigrid))
         assert cfg.scale_name == scale and config.conditions
@@ -343,7 +343,7 @@ def test_episode_cut_warning_flags_short_chunks_and_no_shipped_scale():
     from torchrl_options.experiments.minigrid import MiniGridConfig
     from torchrl_options.experiments.minigrid.pipeline import episode_cut_warning
 
-    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16"):
+    for scale in ("tiny", "default", "paper", "unlocklocal", "doorkey", "doorkey16", "keycorridor"):
         config = MiniGridConfig.from_dict(OmegaConf.to_container(_config([f"minigrid_scale={scale}"]).minigrid))
         assert (episode_cut_warning(config) is None) == (scale != "tiny"), scale
     # DoorKey-16x16's 2560-step episodes against 10240-frame chunks over 4 envs: one episode per env per chunk

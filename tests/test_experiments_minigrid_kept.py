@@ -244,6 +244,24 @@ def test_doorkey16_transfer_table_is_the_kept_run(tmp_path):
             assert f"{wins} of {episodes}" in page, (name, condition)
 
 
+def test_keycorridor_table_is_the_kept_run(tmp_path):
+    """KeyCorridorS3R2 (PPO, 10 seeds): the page's table; same level ahead (7/10 seeds reach 0.5, actions only none),
+    transfer from UnlockLocal no evidence either way; the episode counts the page quotes."""
+    folder = os.path.join(KEPT, "keycorridor")
+    by = _kept_rl_table(folder, tmp_path, 3)
+    assert all(s.seeds == list(range(10)) for s in by.values())
+    assert by["ppo-A"].reached == 0 and by["ppo-H1"].reached == 7 and by["ppo-H1"].diff_final[1] > 0
+    assert by["ppo-H1t"].reached == 0 and by["ppo-H1t"].diff_final[1] < 0 < by["ppo-H1t"].diff_final[2]
+    rows = _kept_rows(os.path.join(folder, "results.csv.gz"), tmp_path)
+    page = _page()
+    for condition, (wins, episodes) in {"ppo-A": (8, 1842), "ppo-H1": (1028, 2321), "ppo-H1t": (29, 1847)}.items():
+        returns = [float(r["return"]) for r in rows if r["condition"] == condition]
+        assert (sum(x > 0 for x in returns), len(returns)) == (wins, episodes), condition
+        assert f"{wins} of {episodes}" in page, condition
+    segmentation = read_records(os.path.join(folder, "segmentation.jsonl"))
+    assert sorted(r["seed"] for r in segmentation) == list(range(10))
+
+
 def test_truth_likelihood_claims_hold_on_the_kept_records():
     """The likelihood of the bot's own structure against DDO's fit, as the page states it: with the uniform
     meta-control the truth's subgoals are less likely than DDO's fit on every cell (by 0.33-0.97 nats per step), with
