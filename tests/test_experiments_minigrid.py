@@ -353,6 +353,12 @@ def test_episode_cut_warning_flags_short_chunks_and_no_shipped_scale():
     assert "checkpoint_every=10240" in message and "2560-step episodes" in message and "102400" in message
     assert episode_cut_warning(MiniGridConfig(**{**short.__dict__, "checkpoint_every": 102_400})) is None
     assert episode_cut_warning(MiniGridConfig(**{**short.__dict__, "max_episode_steps": 256})) is None
+    # checkpoint_every = rl_frames is still two chunks: 50,000 frames round down to 97 PPO batches of 512
+    assert "50176 (one chunk per cell)" in episode_cut_warning(MiniGridConfig(**{**short.__dict__,
+                                                                              "checkpoint_every": 50_000}))
+    # DQN's 64-frame batches (its default): 51,200 is one chunk for both
+    both = MiniGridConfig(**{**short.__dict__, "conditions": ["ppo-A", "dqn-A"], "checkpoint_every": 51_200})
+    assert episode_cut_warning(both) is None
 
 
 @needs_minigrid

@@ -98,21 +98,39 @@ def level_options(level: str, seed: int, config: MiniGridConfig, out_dir: str) -
         return options, metadata
 
 
+def _chunk_frames(checkpoint_every: int, frames_per_batch: int) -> int:
+    """The frames of one checkpoint chunk of an RL cell: ``checkpoint_every`` rounded down to whole collector batches
+    (at least one)."""
+    return max(1, checkpoint_every // frames_per_batch) * frames_per_batch
+
+
+def _frames_per_batch(config: MiniGridConfig, algorithm: str) -> int:
+    """The collector batch of ``algorithm``'s agent (:func:`_make_agent`): ``frames_per_batch`` for PPO, the DQN
+    agent's own default for DQN."""
+    if algorithm == "ppo":
+        return config.frames_per_batch
+    from torchrl_options.agents import OptionsDQNConfig
+
+    return OptionsDQNConfig.frames_per_batch
+
+
 def episode_cut_warning(config: MiniGridConfig) -> str | None:
     """Why the RL cells' checkpoint chunks are too short for ``rl_level``'s episodes, or ``None`` when they are not.
 
-    A cell trains in chunks of about ``checkpoint_every`` frames, each a fresh ``train`` call that restarts the envs'
-    episodes (so that a resumed cell is the uninterrupted one). An episode still running at a chunk's end is cut
-    there and never recorded. Those are mostly the long, failed ones: the success rate is then biased up, and the
-    agents learn from episodes shorter than the level's limit. With ``checkpoint_every / num_envs`` steps per env and
-    chunk against an episode limit ``L`` (``max_episode_steps``, else the level's own), fewer than ``10 L`` is
-    flagged; a cell of a single chunk (``checkpoint_every >= rl_frames``) never cuts.
+    A cell trains in chunks of ``checkpoint_every`` frames (rounded down to whole collector batches), each a fresh
+    ``train`` call that restarts the envs' episodes (so that a resumed cell is the uninterrupted one). An episode
+    still running at a chunk's end is cut there and never recorded. Those are mostly the long, failed ones: the
+    success rate is then biased up, and the agents learn from episodes shorter than the level's limit. With a
+    chunk's steps per env against an episode limit ``L`` (``max_episode_steps``, else the level's own), fewer than
+    ``10 L`` is flagged; a cell trained in a single chunk never cuts.
 
     Examples:
         >>> episode_cut_warning(MiniGridConfig(rl_level="BabyAI-UnlockPickup-v0")) is None  # doctest: +SKIP
         True
     """
-    if config.checkpoint_every >= config.rl_frames:
+    batches = {_frames_per_batch(config, c.partition("-")[0]) for c in config.conditions}
+    chunk = min(_chunk_frames(config.checkpoint_every, b) for b in batches)
+    if chunk >= config.rl_frames:
         return None
     limit = config.max_episode_steps
     if limit is None:
@@ -121,15 +139,16 @@ def episode_cut_warning(config: MiniGridConfig) -> str | None:
         env = make_minigrid_gym(config.rl_level)
         limit = int(env.unwrapped.max_steps)
         env.close()
-    steps = config.checkpoint_every // config.num_envs
+    steps = chunk // config.num_envs
     if steps >= 10 * limit:
         return None
+    single = max(-(-config.rl_frames // b) * b for b in batches)
     return (
         f"checkpoint_every={config.checkpoint_every} frames over num_envs={config.num_envs} envs gives each env "
         f"{steps} steps per chunk, against {limit}-step episodes on {config.rl_level}: every chunk restarts the "
         "episodes, so the ones still running at its end (mostly failures) are cut and not recorded, which biases "
-        f"the success rate up. Set checkpoint_every to at least {10 * limit * config.num_envs} or to rl_frames "
-        f"({config.rl_frames}: one chunk per cell)."
+        f"the success rate up. Set checkpoint_every to at least {10 * limit * config.num_envs}, or to at least "
+        f"{single} (one chunk per cell)."
     )
 
 
@@ -199,8 +218,7 @@ def _run_cell(cell: Cell, algorithm: str, kind: str, config: MiniGridConfig, out
     if os.path.exists(partial_path):
         agent.load(partial_path)
         logger.info("%s: resumed at %d frames", cell.name, agent.frames)
-    per_batch = agent.config.frames_per_batch
-    chunk = max(1, config.checkpoint_every // per_batch) * per_batch
+    chunk = _chunk_frames(config.checkpoint_every, agent.config.frames_per_batch)
     bar = None
     if progress:
         from tqdm.auto import tqdm
