@@ -201,6 +201,42 @@ def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
     assert floor["max_usage"][0] > 0.8
 
 
+def test_round7_learned_meta_figures_on_the_page_are_the_kept_records():
+    """Round 7 (meta_control="learned"): its table and composition lines on the page are the kept records, and the
+    page's verdicts hold: below random boundaries at the true rate in F1 +-2 on every level at both granularities
+    (above a boundary at every action change against the skills only), below "one option everywhere" in label accuracy against the subgoals, above it against the skills on two levels
+    only; five seeds switch at 0.30-0.43 of the steps (subgoal F1 +-2 0.67-0.77), the other ten keep one large option."""
+    records = _records("round7_learned_meta")
+    counts = _by_method(records)
+    assert len(counts) == 3 and all(s == set(range(5)) for s in counts.values()), counts
+    page = _page()
+    section = page[page.index("**A learned meta-control does not fix it either**"):]
+    for granularity in ("subgoal", "skill"):
+        lines = [x for x in _table_lines(segmentation_markdown(records, granularity)) if "| DDO |" in x]
+        assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    lines = _table_lines(composition_markdown(records, "subgoal"))
+    assert len(lines) == 15 and not _quoted(lines, section), _quoted(lines, section)
+    above_one_option = set()
+    for granularity in ("subgoal", "skill"):
+        for (level, _), cell in segmentation_summary(records, granularity).items():
+            assert cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0], (granularity, level)
+            below_action_change = cell["ddo"]["f1_w2"][0] < cell["action_change"]["f1_w2"][0]
+            assert below_action_change == (granularity == "subgoal"), (granularity, level)
+            if granularity == "subgoal":
+                assert cell["ddo"]["label_accuracy"][0] < cell["one_option"]["label_accuracy"][0], level
+            elif cell["ddo"]["label_accuracy"][1] > cell["one_option"]["label_accuracy"][0]:
+                above_one_option.add(level)
+    assert above_one_option == {"BabyAI-UnlockPickup-v0", "BabyAI-BlockedUnlockPickup-v0"}
+    split = {(r["level"], r["seed"]) for r in records if r["subgoal"]["ddo"]["boundary_rate"] >= 0.3}
+    assert split == {("BabyAI-UnlockPickup-v0", s) for s in (2, 3, 4)} | {("BabyAI-BlockedUnlockPickup-v0", s) for s in (3, 4)}
+    for r in records:
+        rate, usage = r["subgoal"]["ddo"]["boundary_rate"], r["subgoal"]["composition"]["max_usage"]
+        if (r["level"], r["seed"]) in split:
+            assert rate <= 0.43 and 0.665 <= r["subgoal"]["ddo"]["f1_w2"] < 0.774
+        else:
+            assert 0.045 <= rate <= 0.265 and 0.615 <= usage <= 0.965, (r["level"], r["seed"], rate, usage)
+
+
 def test_default_scale_rl_table_is_the_kept_run(tmp_path):
     """The default scale with 10 RL seeds, PPO and DQN, same level and transfer on UnlockPickup (issue 50): every
     table line on the page is the kept run's, and the verdicts the page states in words hold on the records."""
