@@ -237,6 +237,41 @@ def test_round7_learned_meta_figures_on_the_page_are_the_kept_records():
             assert 0.045 <= rate <= 0.265 and 0.615 <= usage <= 0.965, (r["level"], r["seed"], rate, usage)
 
 
+def test_round8_conv_learned_meta_figures_on_the_page_are_the_kept_records():
+    """Round 8 (conv net, one random start, meta_control="learned"): its table lines on the page are the kept records,
+    and the page's per-level verdicts against the skills hold (intervals against the baselines' means): UnlockPickup
+    beats every trivial baseline; BlockedUnlockPickup beats one option in labels, its F1 +-2 interval holds random's
+    mean; KeyCorridorS3R2 beats both boundary baselines and falls below one option in labels."""
+    records = _records("round8_conv_learned_meta")
+    counts = _by_method(records)
+    assert len(counts) == 3 and all(s == set(range(5)) for s in counts.values()), counts
+    page = _page()
+    section = page[page.index("**A conv net with a learned meta-control and one random start comes closest**"):]
+    for granularity in ("subgoal", "skill"):
+        lines = [x for x in _table_lines(segmentation_markdown(records, granularity)) if "| DDO |" in x]
+        assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
+
+    def beats(cell, metric, baseline):  # the interval clear of the baseline's mean
+        return cell["ddo"][metric][1] > cell[baseline][metric][0]
+
+    def below(cell, metric, baseline):
+        return cell["ddo"][metric][2] < cell[baseline][metric][0]
+
+    up, blocked, corridor = (skill[f"BabyAI-{name}-v0"] for name in ("UnlockPickup", "BlockedUnlockPickup", "KeyCorridorS3R2"))
+    assert beats(up, "label_accuracy", "one_option") and beats(up, "f1_w2", "random") and beats(up, "f1_w2", "action_change")
+    assert beats(blocked, "label_accuracy", "one_option") and beats(blocked, "f1_w2", "action_change")
+    assert blocked["ddo"]["f1_w2"][1] < blocked["random"]["f1_w2"][0] < blocked["ddo"]["f1_w2"][0]  # mean above, undecided
+    assert beats(corridor, "f1_w2", "random") and beats(corridor, "f1_w2", "action_change")
+    assert below(corridor, "label_accuracy", "one_option")
+    for (level, _), cell in segmentation_summary(records, "subgoal").items():
+        assert cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0] and below(cell, "label_accuracy", "one_option"), level
+    poor = {(r["level"], r["seed"]) for r in records if r["fit"]["model_log_likelihood_per_step"] < -1.0}
+    assert poor == {("BabyAI-UnlockPickup-v0", 0), ("BabyAI-BlockedUnlockPickup-v0", 0), ("BabyAI-BlockedUnlockPickup-v0", 3)}
+    assert all(-0.23 < r["fit"]["model_log_likelihood_per_step"] for r in records if (r["level"], r["seed"]) not in poor)
+    assert all(0.70 <= r["skill"]["ddo"]["f1_w2"] <= 0.735 for r in records if r["level"] == "BabyAI-UnlockPickup-v0")
+
+
 def test_default_scale_rl_table_is_the_kept_run(tmp_path):
     """The default scale with 10 RL seeds, PPO and DQN, same level and transfer on UnlockPickup (issue 50): every
     table line on the page is the kept run's, and the verdicts the page states in words hold on the records."""
