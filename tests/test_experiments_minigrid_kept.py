@@ -272,6 +272,29 @@ def test_round8_conv_learned_meta_figures_on_the_page_are_the_kept_records():
     assert all(0.70 <= r["skill"]["ddo"]["f1_w2"] <= 0.735 for r in records if r["level"] == "BabyAI-UnlockPickup-v0")
 
 
+def test_round9_factory_starts_figures_on_the_page_are_the_kept_records():
+    """Round 9 (round 8 with the defaults' six starts): its table lines on the page are the kept records (5, 5 and 3
+    seeds), its fits are more likely than round 8's on 11 of 13 cells, terminate at 0.02-0.11 of the steps, and fall
+    below random boundaries at the true rate against the skills (intervals clear on two levels, the mean on the third)."""
+    records = _records("round9_conv_learned_meta_factory")
+    counts = {level: seeds for (level, _), seeds in _by_method(records).items()}
+    assert counts == {"BabyAI-UnlockPickup-v0": set(range(5)), "BabyAI-BlockedUnlockPickup-v0": set(range(5)),
+                      "BabyAI-KeyCorridorS3R2-v0": {0, 3, 4}}
+    page = _page()
+    section = page[page.index("**With the defaults' six starts the same setting collapses again**"):]
+    lines = [x for x in _table_lines(segmentation_markdown(records, "skill")) if "| DDO |" in x]
+    assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    one_start = {(r["level"], r["seed"]): r for r in _records("round8_conv_learned_meta")}
+    ll = lambda r: r["fit"]["model_log_likelihood_per_step"]  # noqa: E731
+    assert sum(ll(r) > ll(one_start[(r["level"], r["seed"])]) for r in records) == 11
+    assert all(-0.08 < ll(r) < -0.02 for r in records)
+    assert all(0.015 < r["skill"]["ddo"]["boundary_rate"] < 0.11 for r in records)
+    assert all(0.145 < r["skill"]["ddo"]["boundary_rate"] < 0.52 for r in one_start.values())
+    for (level, _), cell in segmentation_summary(records, "skill").items():
+        clear = cell["ddo"]["f1_w2"][2] < cell["random"]["f1_w2"][0]
+        assert clear == (level != "BabyAI-KeyCorridorS3R2-v0") and cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0]
+
+
 def test_default_scale_rl_table_is_the_kept_run(tmp_path):
     """The default scale with 10 RL seeds, PPO and DQN, same level and transfer on UnlockPickup (issue 50): every
     table line on the page is the kept run's, and the verdicts the page states in words hold on the records."""
