@@ -201,19 +201,31 @@ def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
     assert floor["max_usage"][0] > 0.8
 
 
+#: the three levels of the segmentation rounds, each with seeds 0-4
+FIVE_SEEDS = {f"BabyAI-{name}-v0": set(range(5)) for name in ("UnlockPickup", "BlockedUnlockPickup", "KeyCorridorS3R2")}
+
+
+def _kept_round(name, heading, seeds=FIVE_SEEDS, granularities=("subgoal", "skill")):
+    """A kept round of one method: its records (checked to hold exactly ``seeds``, level -> seeds) and the page from the
+    round's ``heading`` on, where each granularity's DDO table lines of the records must be quoted."""
+    records = _records(name)
+    counts = _by_method(records)
+    assert len(counts) == len(seeds) and {level: s for (level, _), s in counts.items()} == seeds, counts
+    page = _page()
+    section = page[page.index(heading):]
+    for granularity in granularities:
+        lines = [x for x in _table_lines(segmentation_markdown(records, granularity)) if "| DDO |" in x]
+        assert len(lines) == len(seeds) and not _quoted(lines, section), _quoted(lines, section)
+    return records, section
+
+
 def test_round7_learned_meta_figures_on_the_page_are_the_kept_records():
     """Round 7 (meta_control="learned"): its table and composition lines on the page are the kept records, and the
     page's verdicts hold: below random boundaries at the true rate in F1 +-2 on every level at both granularities
-    (above a boundary at every action change against the skills only), below "one option everywhere" in label accuracy against the subgoals, above it against the skills on two levels
-    only; five seeds switch at 0.30-0.43 of the steps (subgoal F1 +-2 0.67-0.77), the other ten keep one large option."""
-    records = _records("round7_learned_meta")
-    counts = _by_method(records)
-    assert len(counts) == 3 and all(s == set(range(5)) for s in counts.values()), counts
-    page = _page()
-    section = page[page.index("**A learned meta-control does not fix it either**"):]
-    for granularity in ("subgoal", "skill"):
-        lines = [x for x in _table_lines(segmentation_markdown(records, granularity)) if "| DDO |" in x]
-        assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    (above a boundary at every action change against the skills only), below "one option everywhere" in label
+    accuracy against the subgoals, above it against the skills on two levels only; five seeds switch at 0.30-0.43 of
+    the steps (subgoal F1 +-2 0.67-0.77), the other ten keep one large option."""
+    records, section = _kept_round("round7_learned_meta", "**A learned meta-control does not fix it either**")
     lines = _table_lines(composition_markdown(records, "subgoal"))
     assert len(lines) == 15 and not _quoted(lines, section), _quoted(lines, section)
     above_one_option = set()
@@ -228,7 +240,8 @@ def test_round7_learned_meta_figures_on_the_page_are_the_kept_records():
                 above_one_option.add(level)
     assert above_one_option == {"BabyAI-UnlockPickup-v0", "BabyAI-BlockedUnlockPickup-v0"}
     split = {(r["level"], r["seed"]) for r in records if r["subgoal"]["ddo"]["boundary_rate"] >= 0.3}
-    assert split == {("BabyAI-UnlockPickup-v0", s) for s in (2, 3, 4)} | {("BabyAI-BlockedUnlockPickup-v0", s) for s in (3, 4)}
+    assert split == ({("BabyAI-UnlockPickup-v0", s) for s in (2, 3, 4)}
+                     | {("BabyAI-BlockedUnlockPickup-v0", s) for s in (3, 4)})
     for r in records:
         rate, usage = r["subgoal"]["ddo"]["boundary_rate"], r["subgoal"]["composition"]["max_usage"]
         if (r["level"], r["seed"]) in split:
@@ -242,14 +255,8 @@ def test_round8_conv_learned_meta_figures_on_the_page_are_the_kept_records():
     and the page's per-level verdicts against the skills hold (intervals against the baselines' means): UnlockPickup
     beats every trivial baseline; BlockedUnlockPickup beats one option in labels, its F1 +-2 interval holds random's
     mean; KeyCorridorS3R2 beats both boundary baselines and falls below one option in labels."""
-    records = _records("round8_conv_learned_meta")
-    counts = _by_method(records)
-    assert len(counts) == 3 and all(s == set(range(5)) for s in counts.values()), counts
-    page = _page()
-    section = page[page.index("**A conv net with a learned meta-control and one random start comes closest**"):]
-    for granularity in ("subgoal", "skill"):
-        lines = [x for x in _table_lines(segmentation_markdown(records, granularity)) if "| DDO |" in x]
-        assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    records, _ = _kept_round("round8_conv_learned_meta",
+                             "**A conv net with a learned meta-control and one random start comes closest**")
     skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
 
     def beats(cell, metric, baseline):  # the interval clear of the baseline's mean
@@ -258,8 +265,9 @@ def test_round8_conv_learned_meta_figures_on_the_page_are_the_kept_records():
     def below(cell, metric, baseline):
         return cell["ddo"][metric][2] < cell[baseline][metric][0]
 
-    up, blocked, corridor = (skill[f"BabyAI-{name}-v0"] for name in ("UnlockPickup", "BlockedUnlockPickup", "KeyCorridorS3R2"))
-    assert beats(up, "label_accuracy", "one_option") and beats(up, "f1_w2", "random") and beats(up, "f1_w2", "action_change")
+    up, blocked, corridor = (skill[level] for level in FIVE_SEEDS)  # UnlockPickup, BlockedUnlockPickup, KeyCorridor
+    assert beats(up, "label_accuracy", "one_option")
+    assert beats(up, "f1_w2", "random") and beats(up, "f1_w2", "action_change")
     assert beats(blocked, "label_accuracy", "one_option") and beats(blocked, "f1_w2", "action_change")
     assert blocked["ddo"]["f1_w2"][1] < blocked["random"]["f1_w2"][0] < blocked["ddo"]["f1_w2"][0]  # mean above, undecided
     assert beats(corridor, "f1_w2", "random") and beats(corridor, "f1_w2", "action_change")
@@ -276,14 +284,9 @@ def test_round9_factory_starts_figures_on_the_page_are_the_kept_records():
     """Round 9 (round 8 with the defaults' six starts): its table lines on the page are the kept records (5, 5 and 3
     seeds), its fits are more likely than round 8's on 11 of 13 cells, terminate at 0.02-0.11 of the steps, and fall
     below random boundaries at the true rate against the skills (intervals clear on two levels, the mean on the third)."""
-    records = _records("round9_conv_learned_meta_factory")
-    counts = {level: seeds for (level, _), seeds in _by_method(records).items()}
-    assert counts == {"BabyAI-UnlockPickup-v0": set(range(5)), "BabyAI-BlockedUnlockPickup-v0": set(range(5)),
-                      "BabyAI-KeyCorridorS3R2-v0": {0, 3, 4}}
-    page = _page()
-    section = page[page.index("**With the defaults' six starts the same setting collapses again**"):]
-    lines = [x for x in _table_lines(segmentation_markdown(records, "skill")) if "| DDO |" in x]
-    assert len(lines) == 3 and not _quoted(lines, section), _quoted(lines, section)
+    records, _ = _kept_round("round9_conv_learned_meta_factory",
+                             "**With the defaults' six starts the same setting collapses again**",
+                             seeds={**FIVE_SEEDS, "BabyAI-KeyCorridorS3R2-v0": {0, 3, 4}}, granularities=("skill",))
     one_start = {(r["level"], r["seed"]): r for r in _records("round8_conv_learned_meta")}
     ll = lambda r: r["fit"]["model_log_likelihood_per_step"]  # noqa: E731
     assert sum(ll(r) > ll(one_start[(r["level"], r["seed"])]) for r in records) == 11
