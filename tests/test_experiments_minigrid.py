@@ -97,6 +97,20 @@ def test_deterministic_and_saved_with_tensors_only(demos, tmp_path):
 
 
 @needs_minigrid
+def test_a_bot_whose_plan_grows_without_end_is_a_skipped_layout_not_a_hang():
+    # On this layout minigrid's bot pushes exploration subgoals forever inside one replan(); the bounded plan
+    # turns that into a layout the bot gives up on, and the next seed is used.
+    demos = bot_demonstrations("BabyAI-UnlockToUnlock-v0", 1, first_seed=4)
+    assert demos.skipped_seeds == [4] and demos.env_seeds == [5]
+    from torchrl_options.experiments.minigrid.demonstrations import _BoundedPlan, _MAX_PLAN_DEPTH, _PlanTooDeep
+
+    plan = _BoundedPlan(range(_MAX_PLAN_DEPTH - 1))
+    plan.append("one more")  # up to the bound: a plan like any other
+    with pytest.raises(_PlanTooDeep):
+        plan.append("too deep")
+
+
+@needs_minigrid
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="BabyAI level"):
         bot_demonstrations("MiniGrid-DoorKey-5x5-v0", 1)

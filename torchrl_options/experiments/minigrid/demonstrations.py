@@ -177,6 +177,25 @@ def _switches(*labels: torch.Tensor) -> torch.Tensor:
     return change
 
 
+#: The most subgoals the bot's plan may hold. Its plans are a few subgoals deep; on some layouts (seed 4 of
+#: ``BabyAI-UnlockToUnlock-v0`` with minigrid 3.2) one ``replan`` pushes exploration subgoals without end and
+#: never returns, so a deeper plan ends the episode as one the bot gives up on.
+_MAX_PLAN_DEPTH = 256
+
+
+class _PlanTooDeep(RuntimeError):
+    pass
+
+
+class _BoundedPlan(list):
+    """The bot's subgoal stack, raising :class:`_PlanTooDeep` when it grows past :data:`_MAX_PLAN_DEPTH`."""
+
+    def append(self, subgoal) -> None:
+        if len(self) >= _MAX_PLAN_DEPTH:
+            raise _PlanTooDeep(f"the bot's plan passed {_MAX_PLAN_DEPTH} subgoals")
+        super().append(subgoal)
+
+
 def _one_episode(env, gym_env, env_seed: int, max_steps: int | None) -> TensorDict | None:
     from minigrid.utils.baby_ai_bot import BabyAIBot, DisappearedBoxError
     from torchrl.envs.utils import step_mdp
@@ -189,6 +208,7 @@ def _one_episode(env, gym_env, env_seed: int, max_steps: int | None) -> TensorDi
             f"the BabyAI bot cannot plan on {gym_env.spec.id if gym_env.spec else gym_env}: it needs a BabyAI level "
             f"(BabyAI-*), whose mission it parses ({type(err).__name__}: {err})."
         ) from None
+    bot.stack = _BoundedPlan(bot.stack)
     limit = max_steps or gym_env.unwrapped.max_steps
     steps, labels = [], []
     try:
@@ -201,7 +221,7 @@ def _one_episode(env, gym_env, env_seed: int, max_steps: int | None) -> TensorDi
             if bool(td.get(("next", "done")).any()):
                 break
             td = step_mdp(td)
-    except (DisappearedBoxError, AssertionError):  # the bot gives up on this layout (it fails on KeyInBox, say)
+    except (DisappearedBoxError, AssertionError, _PlanTooDeep):  # the bot gives up (it fails on KeyInBox, say)
         return None
     traj = torch.stack(steps)
     if not bool(traj[-1].get(("next", "terminated")).any()) or float(traj[-1].get(("next", "reward")).sum()) <= 0:
