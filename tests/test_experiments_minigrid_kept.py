@@ -372,3 +372,35 @@ def test_truth_likelihood_claims_hold_on_the_kept_records():
     assert sum(learned) == 2
     assert all(r["models"]["one-option"]["marginal"] > r["models"]["ddo"]["marginal"] - 0.1 for r in records)
     assert f"on {sum(learned)} of 9 cells" in _page()
+
+
+def test_round10_new_levels_figures_on_the_page_are_the_kept_records():
+    """Round 10 (round 8's setting on two levels never run before): its table lines on the page are the kept records
+    (5 seeds each), and the page's verdicts against the skills hold (intervals against the baselines' means):
+    UnlockToUnlock beats both boundary baselines in F1 +-2 and its label interval holds one option's mean;
+    PutNextLocal beats a boundary at every action change only, its F1 +-2 interval holding random's mean and its
+    label interval one option's; against the subgoals both fall below one option in labels."""
+    new = {level: set(range(5)) for level in ("BabyAI-UnlockToUnlock-v0", "BabyAI-PutNextLocal-v0")}
+    records, section = _kept_round("round10_new_levels", "**On two levels never run here, the round 8 setting", seeds=new)
+    skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
+
+    def holds(cell, metric, baseline):
+        return cell["ddo"][metric][1] <= cell[baseline][metric][0] <= cell["ddo"][metric][2]
+
+    def beats(cell, metric, baseline):
+        return cell["ddo"][metric][1] > cell[baseline][metric][0]
+
+    u2u, put = skill["BabyAI-UnlockToUnlock-v0"], skill["BabyAI-PutNextLocal-v0"]
+    assert beats(u2u, "f1_w2", "random") and beats(u2u, "f1_w2", "action_change")
+    assert holds(u2u, "label_accuracy", "one_option")
+    assert beats(put, "f1_w2", "action_change") and holds(put, "f1_w2", "random")
+    assert holds(put, "label_accuracy", "one_option")
+    for (level, _), cell in segmentation_summary(records, "subgoal").items():
+        assert cell["ddo"]["label_accuracy"][2] < cell["one_option"]["label_accuracy"][0], level
+        assert holds(cell, "f1_w2", "random") and cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0], level
+    poor = {(r["level"], r["seed"]) for r in records if r["fit"]["model_log_likelihood_per_step"] < -1.0}
+    assert poor == {("BabyAI-PutNextLocal-v0", 1)}
+    assert "-1.31 nats per step" in section and "0.741 [0.636, 0.846]" in section
+    steps = {level: [r["num_steps"] for r in records if r["level"] == level] for level in new}
+    assert all(4200 < n < 4450 for n in steps["BabyAI-UnlockToUnlock-v0"])  # 43 steps per demonstration
+    assert all(1150 < n < 1260 for n in steps["BabyAI-PutNextLocal-v0"])  # 12
