@@ -452,3 +452,29 @@ def test_round11_ten_seeds_figures_on_the_page_are_the_kept_records():
     poor = {(r["level"], r["seed"]) for r in new if r["fit"]["model_log_likelihood_per_step"] < -1.0}
     assert poor == {("BabyAI-UnlockPickup-v0", 6), ("BabyAI-UnlockPickup-v0", 9), ("BabyAI-PutNextLocal-v0", 5),
                     ("BabyAI-PutNextLocal-v0", 6)}
+
+
+def test_round12_eight_options_figures_on_the_page_are_the_kept_records():
+    """Round 12 (num_options=8 on the two tuning levels): its skill lines on the page are the kept records, and the
+    page's comparison with round 8 holds: F1 +-2 lower on both levels, below random's mean on BlockedUnlockPickup with
+    the interval clear, and label accuracy not above round 8's on UnlockPickup."""
+    tuning = {level: set(range(5)) for level in ("BabyAI-UnlockPickup-v0", "BabyAI-BlockedUnlockPickup-v0")}
+    records, section = _kept_round("round12_eight_options", "**Eight options instead of five do worse**", seeds=tuning,
+                                   granularities=("skill",))
+    assert all(r["method"]["num_options"] == 8 for r in records)
+    eight = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
+    five = segmentation_summary(_records("round8_conv_learned_meta"), "skill")
+    five = {level: cell for (level, _), cell in five.items()}
+    for level in tuning:
+        assert eight[level]["ddo"]["f1_w2"][0] < five[level]["ddo"]["f1_w2"][0] - 0.05, level
+    blocked = eight["BabyAI-BlockedUnlockPickup-v0"]
+    assert blocked["ddo"]["f1_w2"][2] < blocked["random"]["f1_w2"][0]
+    up = "BabyAI-UnlockPickup-v0"
+    assert eight[up]["ddo"]["label_accuracy"][0] < five[up]["ddo"]["label_accuracy"][0]
+    assert "0.278 and 0.152 against 0.184 and 0.301" in section
+    merged = []
+    for level in tuning:
+        rows = _table_lines(composition_markdown([r for r in records if r["level"] == level], "skill"))
+        groups = [[g.strip().split(" + ") for g in row.split("|")[8].split(";")] for row in rows]
+        merged.append(sum(any(sum(s.startswith("pickup") for s in g) >= 2 for g in gs) for gs in groups))
+    assert merged == [4, 5] and "on 4 and\n5 of the 5 seeds" in section
