@@ -108,6 +108,14 @@ def test_a_bot_whose_plan_grows_without_end_is_a_skipped_layout_not_a_hang():
     plan.append("one more")  # up to the bound: a plan like any other
     with pytest.raises(_PlanTooDeep):
         plan.append("too deep")
+    cycle = _BoundedPlan()  # pushes and pops at a constant depth: bounded per step, not in total
+    for step in range(3):
+        cycle.new_step()
+        for _ in range(_MAX_PLAN_DEPTH):
+            cycle.append(step)
+            cycle.pop()
+    with pytest.raises(_PlanTooDeep):
+        cycle.append("one push too many in this step")
 
 
 @needs_minigrid

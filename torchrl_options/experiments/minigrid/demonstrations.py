@@ -177,9 +177,10 @@ def _switches(*labels: torch.Tensor) -> torch.Tensor:
     return change
 
 
-#: The most subgoals the bot's plan may hold. Its plans are a few subgoals deep; on some layouts (seed 4 of
-#: ``BabyAI-UnlockToUnlock-v0`` with minigrid 3.2) one ``replan`` pushes exploration subgoals without end and
-#: never returns, so a deeper plan ends the episode as one the bot gives up on.
+#: The most subgoals the bot's plan may hold, and the most it may push in one ``replan``. Its plans are a few
+#: subgoals deep; on some layouts (seed 4 of ``BabyAI-UnlockToUnlock-v0`` with minigrid 3.2) one ``replan`` pushes
+#: exploration subgoals without end and never returns. A deeper plan, or more pushes in one step (a cycle of pushes
+#: and pops), ends the episode as one the bot gives up on.
 _MAX_PLAN_DEPTH = 256
 
 
@@ -188,11 +189,18 @@ class _PlanTooDeep(RuntimeError):
 
 
 class _BoundedPlan(list):
-    """The bot's subgoal stack, raising :class:`_PlanTooDeep` when it grows past :data:`_MAX_PLAN_DEPTH`."""
+    """The bot's subgoal stack: raises :class:`_PlanTooDeep` when it would hold more than :data:`_MAX_PLAN_DEPTH`
+    subgoals, or when more than that many are pushed between two calls of :meth:`new_step`."""
+
+    pushes = 0
+
+    def new_step(self) -> None:
+        self.pushes = 0
 
     def append(self, subgoal) -> None:
-        if len(self) >= _MAX_PLAN_DEPTH:
-            raise _PlanTooDeep(f"the bot's plan passed {_MAX_PLAN_DEPTH} subgoals")
+        self.pushes += 1
+        if len(self) >= _MAX_PLAN_DEPTH or self.pushes > _MAX_PLAN_DEPTH:
+            raise _PlanTooDeep(f"the bot's plan passed {_MAX_PLAN_DEPTH} subgoals (or pushes in one step)")
         super().append(subgoal)
 
 
@@ -208,11 +216,12 @@ def _one_episode(env, gym_env, env_seed: int, max_steps: int | None) -> TensorDi
             f"the BabyAI bot cannot plan on {gym_env.spec.id if gym_env.spec else gym_env}: it needs a BabyAI level "
             f"(BabyAI-*), whose mission it parses ({type(err).__name__}: {err})."
         ) from None
-    bot.stack = _BoundedPlan(bot.stack)
+    plan = bot.stack = _BoundedPlan(bot.stack)
     limit = max_steps or gym_env.unwrapped.max_steps
     steps, labels = [], []
     try:
         for _ in range(limit):
+            plan.new_step()
             action = int(bot.replan())
             labels.append(_label_step(bot))
             td.set("action", torch.tensor(action))
