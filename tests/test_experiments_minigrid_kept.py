@@ -205,6 +205,28 @@ def test_round6_usage_floor_figures_on_the_page_are_the_kept_records():
 FIVE_SEEDS = {f"BabyAI-{name}-v0": set(range(5)) for name in ("UnlockPickup", "BlockedUnlockPickup", "KeyCorridorS3R2")}
 
 
+def _beats(cell, metric, baseline):
+    """DDO's interval clear above the baseline's mean (a cell of ``segmentation_summary``)."""
+    return cell["ddo"][metric][1] > cell[baseline][metric][0]
+
+
+def _below(cell, metric, baseline):
+    return cell["ddo"][metric][2] < cell[baseline][metric][0]
+
+
+def _holds(cell, metric, baseline):
+    """The baseline's mean inside DDO's interval: no evidence either way."""
+    return cell["ddo"][metric][1] <= cell[baseline][metric][0] <= cell["ddo"][metric][2]
+
+
+def _merges(records, level, verb):
+    """How many seeds of ``level`` have an option holding two skills or more of ``verb`` (``"pickup"``, ``"drop"``),
+    read from the page's skill composition lines."""
+    rows = _table_lines(composition_markdown([r for r in records if r["level"] == level], "skill"))
+    groups = [[g.strip().split(" + ") for g in row.split("|")[8].split(";")] for row in rows]
+    return sum(any(sum(s.startswith(verb) for s in g) >= 2 for g in gs) for gs in groups)
+
+
 def _kept_round(name, heading, seeds=FIVE_SEEDS, granularities=("subgoal", "skill")):
     """A kept round of one method: its records (checked to hold exactly ``seeds``, level -> seeds) and the page from the
     round's ``heading`` on, where each granularity's DDO table lines of the records must be quoted."""
@@ -259,21 +281,16 @@ def test_round8_conv_learned_meta_figures_on_the_page_are_the_kept_records():
                              "**A conv net with a learned meta-control and one random start comes closest**")
     skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
 
-    def beats(cell, metric, baseline):  # the interval clear of the baseline's mean
-        return cell["ddo"][metric][1] > cell[baseline][metric][0]
-
-    def below(cell, metric, baseline):
-        return cell["ddo"][metric][2] < cell[baseline][metric][0]
-
     up, blocked, corridor = (skill[level] for level in FIVE_SEEDS)  # UnlockPickup, BlockedUnlockPickup, KeyCorridor
-    assert beats(up, "label_accuracy", "one_option")
-    assert beats(up, "f1_w2", "random") and beats(up, "f1_w2", "action_change")
-    assert beats(blocked, "label_accuracy", "one_option") and beats(blocked, "f1_w2", "action_change")
+    assert _beats(up, "label_accuracy", "one_option")
+    assert _beats(up, "f1_w2", "random") and _beats(up, "f1_w2", "action_change")
+    assert _beats(blocked, "label_accuracy", "one_option") and _beats(blocked, "f1_w2", "action_change")
     assert blocked["ddo"]["f1_w2"][1] < blocked["random"]["f1_w2"][0] < blocked["ddo"]["f1_w2"][0]  # mean above, undecided
-    assert beats(corridor, "f1_w2", "random") and beats(corridor, "f1_w2", "action_change")
-    assert below(corridor, "label_accuracy", "one_option")
+    assert _beats(corridor, "f1_w2", "random") and _beats(corridor, "f1_w2", "action_change")
+    assert _below(corridor, "label_accuracy", "one_option")
     for (level, _), cell in segmentation_summary(records, "subgoal").items():
-        assert cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0] and below(cell, "label_accuracy", "one_option"), level
+        assert cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0], level
+        assert _below(cell, "label_accuracy", "one_option"), level
     poor = {(r["level"], r["seed"]) for r in records if r["fit"]["model_log_likelihood_per_step"] < -1.0}
     assert poor == {("BabyAI-UnlockPickup-v0", 0), ("BabyAI-BlockedUnlockPickup-v0", 0), ("BabyAI-BlockedUnlockPickup-v0", 3)}
     assert all(-0.23 < r["fit"]["model_log_likelihood_per_step"] for r in records if (r["level"], r["seed"]) not in poor)
@@ -385,20 +402,14 @@ def test_round10_new_levels_figures_on_the_page_are_the_kept_records():
                                    seeds=new)
     skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
 
-    def holds(cell, metric, baseline):
-        return cell["ddo"][metric][1] <= cell[baseline][metric][0] <= cell["ddo"][metric][2]
-
-    def beats(cell, metric, baseline):
-        return cell["ddo"][metric][1] > cell[baseline][metric][0]
-
     u2u, put = skill["BabyAI-UnlockToUnlock-v0"], skill["BabyAI-PutNextLocal-v0"]
-    assert beats(u2u, "f1_w2", "random") and beats(u2u, "f1_w2", "action_change")
-    assert holds(u2u, "label_accuracy", "one_option")
-    assert beats(put, "f1_w2", "action_change") and holds(put, "f1_w2", "random")
-    assert holds(put, "label_accuracy", "one_option")
+    assert _beats(u2u, "f1_w2", "random") and _beats(u2u, "f1_w2", "action_change")
+    assert _holds(u2u, "label_accuracy", "one_option")
+    assert _beats(put, "f1_w2", "action_change") and _holds(put, "f1_w2", "random")
+    assert _holds(put, "label_accuracy", "one_option")
     for (level, _), cell in segmentation_summary(records, "subgoal").items():
-        assert cell["ddo"]["label_accuracy"][2] < cell["one_option"]["label_accuracy"][0], level
-        assert holds(cell, "f1_w2", "random") and cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0], level
+        assert _below(cell, "label_accuracy", "one_option"), level
+        assert _holds(cell, "f1_w2", "random") and cell["ddo"]["f1_w2"][0] < cell["random"]["f1_w2"][0], level
     poor = {(r["level"], r["seed"]) for r in records if r["fit"]["model_log_likelihood_per_step"] < -1.0}
     assert poor == {("BabyAI-PutNextLocal-v0", 1)}
     assert "-1.31 nats per step" in section and "0.741 [0.636, 0.846]" in section
@@ -426,29 +437,20 @@ def test_round11_ten_seeds_figures_on_the_page_are_the_kept_records():
     skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
     up, blocked, corridor, u2u, put = (skill[level] for level in levels)
 
-    def beats(cell, metric, baseline):
-        return cell["ddo"][metric][1] > cell[baseline][metric][0]
-
-    def tie(cell, metric, baseline):  # the baseline's mean inside the interval, the two means within 0.015
-        lo, hi, ref = cell["ddo"][metric][1], cell["ddo"][metric][2], cell[baseline][metric][0]
-        return lo <= ref <= hi and abs(cell["ddo"][metric][0] - ref) < 0.015
+    def tie(cell, metric, baseline):  # no evidence either way, the two means within 0.015
+        return _holds(cell, metric, baseline) and abs(cell["ddo"][metric][0] - cell[baseline][metric][0]) < 0.015
 
     for cell in (up, blocked, corridor, u2u, put):
-        assert beats(cell, "f1_w2", "action_change")
-    assert beats(up, "f1_w2", "random") and beats(up, "label_accuracy", "one_option")
-    assert beats(corridor, "f1_w2", "random")
-    assert corridor["ddo"]["label_accuracy"][2] < corridor["one_option"]["label_accuracy"][0]
-    assert beats(blocked, "label_accuracy", "one_option") and tie(blocked, "f1_w2", "random")
-    assert beats(u2u, "f1_w2", "random") and tie(u2u, "label_accuracy", "one_option")
-    assert beats(put, "label_accuracy", "one_option") and tie(put, "f1_w2", "random")
-    merged = {}
-    for level in levels:
-        rows = _table_lines(composition_markdown([r for r in records if r["level"] == level], "skill"))
-        groups = [[g.strip().split(" + ") for g in row.split("|")[8].split(";")] for row in rows]
-        merged[level] = sum(any(sum(s.startswith("pickup") for s in g) >= 2 for g in gs) for gs in groups)
-        if level == "BabyAI-PutNextLocal-v0":
-            assert all(any(sum(s.startswith("drop") for s in g) >= 2 for g in gs) for gs in groups)
-    assert list(merged.values()) == [8, 8, 5, 7, 9], merged
+        assert _beats(cell, "f1_w2", "action_change")
+    assert _beats(up, "f1_w2", "random") and _beats(up, "label_accuracy", "one_option")
+    assert _beats(corridor, "f1_w2", "random")
+    assert _below(corridor, "label_accuracy", "one_option")
+    assert _beats(blocked, "label_accuracy", "one_option") and tie(blocked, "f1_w2", "random")
+    assert _beats(u2u, "f1_w2", "random") and tie(u2u, "label_accuracy", "one_option")
+    assert _beats(put, "label_accuracy", "one_option") and tie(put, "f1_w2", "random")
+    merged = [_merges(records, level, "pickup") for level in levels]
+    assert merged == [8, 8, 5, 7, 9], merged
+    assert _merges(records, "BabyAI-PutNextLocal-v0", "drop") == 10
     poor = {(r["level"], r["seed"]) for r in new if r["fit"]["model_log_likelihood_per_step"] < -1.0}
     assert poor == {("BabyAI-UnlockPickup-v0", 6), ("BabyAI-UnlockPickup-v0", 9), ("BabyAI-PutNextLocal-v0", 5),
                     ("BabyAI-PutNextLocal-v0", 6)}
@@ -472,9 +474,5 @@ def test_round12_eight_options_figures_on_the_page_are_the_kept_records():
     up = "BabyAI-UnlockPickup-v0"
     assert eight[up]["ddo"]["label_accuracy"][0] < five[up]["ddo"]["label_accuracy"][0]
     assert "0.278 and 0.152 against 0.184 and 0.301" in section
-    merged = []
-    for level in tuning:
-        rows = _table_lines(composition_markdown([r for r in records if r["level"] == level], "skill"))
-        groups = [[g.strip().split(" + ") for g in row.split("|")[8].split(";")] for row in rows]
-        merged.append(sum(any(sum(s.startswith("pickup") for s in g) >= 2 for g in gs) for gs in groups))
+    merged = [_merges(records, level, "pickup") for level in tuning]
     assert merged == [4, 5] and "on 4 and\n5 of the 5 seeds" in section
