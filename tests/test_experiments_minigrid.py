@@ -191,6 +191,88 @@ def test_composition_names_what_each_option_holds():
     assert comp["mean_segment_length"] == 4.0 and comp["reference_mean_segment_length"] == 2.0
 
 
+def _viewed(true, actions, carried=None, heading=None):
+    """``_labelled`` with the skill labels and a MiniGrid observation: the object type on the agent's own cell
+    (``carried``, 1 = empty) and the heading one-hot."""
+    from torchrl_options.envs.minigrid import NUM_OBJECT_TYPES, VIEW_CHANNELS
+
+    data = _labelled(true, actions)
+    B, T = data.batch_size
+    view = torch.zeros(B, T, VIEW_CHANNELS, 7, 7)
+    carried = torch.ones(B, T, dtype=torch.long) if carried is None else torch.tensor(carried)
+    view[..., :NUM_OBJECT_TYPES, 3, 6] = torch.nn.functional.one_hot(carried, NUM_OBJECT_TYPES).float()
+    heading = torch.zeros(B, T, dtype=torch.long) if heading is None else torch.tensor(heading)
+    obs = torch.cat([view.flatten(-3), torch.nn.functional.one_hot(heading, 4).float()], -1)
+    return data.set("observation", obs).set("skill", data["true_option"].clone())
+
+
+def test_option_information_is_the_explained_share_of_each_target():
+    """Exact cases: options that are the skill explain all of it and none of an independent action; options that
+    are the turn's side are handed; options that are what is carried explain it; padding is left out."""
+    import math
+
+    from torchrl_options.experiments.minigrid import option_information
+
+    skill = [[0, 0, 1, 1, 0, 0, 1, 1]]
+    # actions independent of the skill: each skill sees left, right once each
+    data = _viewed(skill, [[0, 1, 0, 1, 1, 0, 1, 0]], carried=[[1, 1, 5, 5, 1, 1, 5, 5]])
+    info = option_information(torch.tensor(skill), data)
+    assert info["skill"] == 1.0 and info["subgoal"] == 1.0 and info["carrying"] == 1.0
+    assert info["action"] == 0.0 and info["turn_side"] == 0.0 and info["handed_turns"] == 0.0
+    assert math.isnan(info["direction"])  # one heading throughout: nothing to explain
+    sides = torch.tensor([[0, 1, 0, 1, 1, 0, 1, 0]])
+    info = option_information(sides + 3, data)
+    assert info["turn_side"] == 1.0 and info["handed_turns"] == 1.0 and info["skill"] == 0.0
+    # options for the two halves: each half holds both skills and both sides equally, so nothing is explained
+    info = option_information(torch.tensor([[0, 0, 0, 0, 1, 1, 1, 1]]), data)
+    assert info["skill"] == 0.0 and info["turn_side"] == 0.0
+    # I(O; X) / H(X) with H(X) = log 2 and the joint counted exactly: options (0, 0, 1, 1, 1, 1, 1, 1) against the
+    # skill (0, 0, 1, 1, 0, 0, 1, 1): H(X) - H(X | O) = log 2 - 6/8 H(1/3)
+    info = option_information(torch.tensor([[0, 0, 1, 1, 1, 1, 1, 1]]), data)
+    h = -(1 / 3 * math.log(1 / 3) + 2 / 3 * math.log(2 / 3))
+    assert info["skill"] == pytest.approx((math.log(2) - 0.75 * h) / math.log(2))
+    # padding is ignored: the same data with two padded steps of noise appended
+    padded = _viewed([[0, 0, 1, 1, 0, 0, 1, 1, 1, 0]], [[0, 1, 0, 1, 1, 0, 1, 0, 0, 1]],
+                     carried=[[1, 1, 5, 5, 1, 1, 5, 5, 1, 1]])
+    padded["collector", "mask"][:, 8:] = False
+    assert option_information(torch.tensor([[0, 0, 1, 1, 0, 0, 1, 1, 0, 1]]), padded) == option_information(
+        torch.tensor(skill), data)
+
+
+def test_option_information_rejects_bad_input_at_the_door():
+    from torchrl_options.experiments.minigrid import option_information
+
+    data = _viewed([[0, 1]], [[0, 1]])
+    with pytest.raises(ValueError, match="predicted must be"):
+        option_information(torch.zeros(1, 3, dtype=torch.long), data)
+    with pytest.raises(ValueError, match="handed"):
+        option_information(torch.zeros(1, 2, dtype=torch.long), data, handed=0.4)
+    with pytest.raises(ValueError, match="'observation'"):
+        option_information(torch.zeros(1, 2, dtype=torch.long), data.exclude("observation"))
+    with pytest.raises(ValueError, match="observation must have"):
+        option_information(torch.zeros(1, 2, dtype=torch.long), data.set("observation", torch.zeros(1, 2, 5)))
+
+
+def test_coverage_and_information_tables_over_seeds():
+    from torchrl_options.experiments import mean_interval
+    from torchrl_options.experiments.minigrid import coverage_markdown, information_markdown
+
+    def comp(part):  # option 0 holds all of a and 0.9 of its steps; b is split, ``part`` of it in option 1
+        return {"usage": [0.5, 0.5], "contents": [{"a": 0.9, "b": 0.1}, {"b": 1.0}],
+                "majority_option": {"a": [0, 1.0], "b": [1, part]}}
+
+    recs = [{"level": "L", "seed": s, "method": {"network": "conv"}, "skill": {"composition": comp(p)},
+             "information": {"skill": p, "subgoal": p, "action": 0.1, "turn_side": 0.5, "direction": 0.0,
+                             "carrying": 0.2, "handed_turns": 0.3}} for s, p in enumerate((0.4, 0.6, 0.8))]
+    lines = coverage_markdown(recs).splitlines()
+    lo, hi = mean_interval([0.4, 0.6, 0.8])[1:]
+    # b (0.55 of the steps) before a (0.45); the split one held at 0.6 on average, under half on one seed
+    assert lines[2].startswith("| L | conv K=5 | b | 3 | 0.55 | ") and lines[3].startswith("| L | conv K=5 | a | 3 | 0.45 |")
+    assert f"| 0.600 [{lo:.3f}, {hi:.3f}] | 0.400 | 1 |" in lines[2]
+    text = information_markdown(recs + [{"level": "M", "seed": 0, "method": {}}])  # records without it are left out
+    assert len(text.splitlines()) == 3 and f"| L | conv K=5 | 3 | 0.600 [{lo:.3f}, {hi:.3f}] |" in text
+
+
 def test_summary_table_intervals_are_student_t_over_seeds():
     from torchrl_options.experiments import mean_interval
     from torchrl_options.experiments.minigrid import segmentation_summary
@@ -225,6 +307,9 @@ def test_segmentation_cell_record_is_plain_data_and_baselines_do_not_depend_on_t
         assert a[gran]["action_change"] == b[gran]["action_change"] and a[gran]["one_option"] == b[gran]["one_option"]
         assert 0 <= a[gran]["ddo"]["label_accuracy"] <= 1 and len(b[gran]["composition"]["usage"]) == 2
     assert a["fit"]["iterations"] == 3 and a["fit"]["cpu_seconds"] > 0
+    from torchrl_options.experiments.minigrid.scoring import INFORMATION_TARGETS
+
+    assert set(a["information"]) == {*INFORMATION_TARGETS, "handed_turns"}
 
 
 @needs_minigrid

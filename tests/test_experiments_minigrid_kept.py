@@ -11,7 +11,13 @@ import pytest
 
 from torchrl_options.experiments import ResultsLog
 from torchrl_options.experiments.minigrid import rl_summary, rl_summary_markdown, segmentation_markdown
-from torchrl_options.experiments.minigrid.summary import composition_markdown, read_records, segmentation_summary
+from torchrl_options.experiments.minigrid.summary import (
+    composition_markdown,
+    coverage_markdown,
+    information_markdown,
+    read_records,
+    segmentation_summary,
+)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 KEPT = os.path.join(ROOT, "results", "minigrid")
@@ -476,3 +482,41 @@ def test_round12_eight_options_figures_on_the_page_are_the_kept_records():
     assert "0.278 and 0.152 against 0.184 and 0.301" in section
     merged = [_merges(records, level, "pickup") for level in tuning]
     assert merged == [4, 5] and "on 4 and\n5 of the 5 seeds" in section
+
+
+def test_where_the_labels_go_figures_on_the_page_are_the_kept_records():
+    """The analysis of rounds 8, 10 and 11 (no new fit): every line of the coverage table and of the information
+    table is on the page, recomputed from the kept records; the information records are the same 50 fits (same
+    step counts); and the page's readings hold: the passing level keeps its largest skills whole, the failing and
+    tied levels split theirs, and the options track the turn's side over the skill on the two corridor-like levels."""
+    records = _records("round8_conv_learned_meta") + _records("round10_new_levels") + _records("round11_seeds_5_to_9")
+    info = _records("option_information")
+    assert sorted((r["level"], r["seed"], r["num_steps"]) for r in info) == sorted(
+        (r["level"], r["seed"], r["num_steps"]) for r in records)
+    page = _page()
+    section = page[page.index("**Where the labels go"):page.index("## RL: options from the bot on the same level")]
+    lines = _table_lines(coverage_markdown(records, "skill")) + _table_lines(information_markdown(info))
+    assert len(lines) == 29 + 5 and not _quoted(lines, section), _quoted(lines, section)
+
+    def held(level, skill):  # (mean share its best option holds, seeds under half)
+        row = [x for x in _table_lines(coverage_markdown(records, "skill")) if f"| {level} |" in x and f"| {skill} |" in x]
+        cells = row[0].split("|")
+        return float(cells[6].split()[0]), int(cells[8])
+
+    assert held("BabyAI-UnlockPickup-v0", "pickup box")[0] > 0.8 and held("BabyAI-UnlockPickup-v0", "drop key")[0] > 0.9
+    assert held("BabyAI-KeyCorridorS3R2-v0", "open door") == (0.566, 5)
+    assert held("BabyAI-UnlockToUnlock-v0", "open door")[0] < 0.6 and held("BabyAI-UnlockToUnlock-v0", "pickup key")[0] < 0.46
+    by = {}
+    for r in info:
+        by.setdefault(r["level"], []).append(r["information"])
+
+    def count(level, test):
+        return sum(test(x) for x in by[level])
+
+    for level, turn_first, handed in (("KeyCorridorS3R2", 9, 4), ("PutNextLocal", 8, 4), ("UnlockPickup", 2, 0)):
+        level = f"BabyAI-{level}-v0"
+        assert count(level, lambda x: x["turn_side"] > x["skill"]) == turn_first, level
+        assert count(level, lambda x: x["handed_turns"] >= 0.5) == handed, level
+    up = by["BabyAI-UnlockPickup-v0"]
+    assert sum(x["carrying"] for x in up) / 10 > sum(x["skill"] for x in up) / 10 > 0.25
+    assert "on 9 and 8 of the 10\n  seeds" in section and "on 4 seeds of each level" in section

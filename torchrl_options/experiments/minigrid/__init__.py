@@ -35,10 +35,17 @@ from torchrl_options.experiments.minigrid.rl_summary import (
     rl_summary_markdown,
 )
 from torchrl_options.experiments.minigrid.runner import run_minigrid, write_minigrid_outputs
-from torchrl_options.experiments.minigrid.scoring import baseline_scores, option_composition, segmentation_scores
+from torchrl_options.experiments.minigrid.scoring import (
+    baseline_scores,
+    option_composition,
+    option_information,
+    segmentation_scores,
+)
 from torchrl_options.experiments.minigrid.segmentation import option_factory, segmentation_cell
 from torchrl_options.experiments.minigrid.summary import (
     composition_markdown,
+    coverage_markdown,
+    information_markdown,
     segmentation_markdown,
     segmentation_summary,
 )
@@ -49,13 +56,16 @@ __all__ = [
     "bot_demonstrations",
     "BotDemonstrations",
     "composition_markdown",
+    "coverage_markdown",
     "frames_to_reach",
+    "information_markdown",
     "level_options",
     "load_demonstrations",
     "minigrid_cells",
     "MiniGridConfig",
     "OPTION_CONDITIONS",
     "option_composition",
+    "option_information",
     "option_factory",
     "plot_success_curves",
     "rl_summary",

@@ -18,6 +18,8 @@ boundary at every change of action; the action itself as the label), ``random`` 
 the reference's own rate, averaged over draws; no labels) and ``one_option`` (one label everywhere: no boundary,
 the majority label's share as accuracy). :func:`option_composition` says what each option holds: its share of the
 steps and the reference labels it covers, and which reference labels share one option (merged).
+:func:`option_information` says what the options track instead, when they are not the skills: the share of the
+entropy of the skill, the action, the turn's side, the heading and the carried object that the option explains.
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["GRANULARITIES", "baseline_scores", "option_composition", "segmentation_scores"]
+__all__ = ["GRANULARITIES", "INFORMATION_TARGETS", "baseline_scores", "option_composition", "option_information",
+           "segmentation_scores"]
 
 _MASK = ("collector", "mask")
 
@@ -226,3 +229,101 @@ def option_composition(
         "mean_segment_length": float((lengths / segs).mean()),
         "reference_mean_segment_length": float((lengths / ref_segs).mean()),
     }
+
+
+#: What :func:`option_information` measures the options against, in its order.
+INFORMATION_TARGETS = ("skill", "subgoal", "action", "turn_side", "direction", "carrying")
+
+# MiniGrid's actions 0 and 1 turn left and right; the agent's cell in the egocentric view is the bottom centre
+_TURNS = (0, 1)
+
+
+def _entropy(counts: np.ndarray) -> float:
+    p = counts[counts > 0] / counts.sum()
+    return float(-(p * np.log(p)).sum())
+
+
+def _explained(option: np.ndarray, target: np.ndarray) -> float:
+    """I(option; target) / H(target) from the empirical joint (nan when the target is constant)."""
+    if target.size == 0:
+        return math.nan
+    _, t = np.unique(target, return_inverse=True)
+    _, o = np.unique(option, return_inverse=True)
+    joint = np.zeros((o.max() + 1, t.max() + 1))
+    np.add.at(joint, (o, t), 1.0)
+    h_t = _entropy(joint.sum(0))
+    if h_t == 0.0:
+        return math.nan
+    mutual = _entropy(joint.sum(0)) + _entropy(joint.sum(1)) - _entropy(joint.ravel())
+    return float(min(max(mutual / h_t, 0.0), 1.0))
+
+
+def option_information(predicted: torch.Tensor, data: TensorDictBase, *, handed: float = 0.9) -> dict:
+    """What the options track: for each target, the share of its entropy that the option explains,
+    ``I(option; target) / H(target)`` over the valid steps (0: independent, 1: the option determines it).
+
+    Targets (:data:`INFORMATION_TARGETS`): ``skill`` and ``subgoal`` (the bot's labels, ``"skill"`` and
+    ``"true_option"``), ``action`` (the bot's action), ``turn_side`` (left or right, over the steps that turn),
+    ``direction`` (the agent's heading, from the observation's last four features) and ``carrying`` (the object type
+    shown on the agent's own cell of the egocentric view: what it carries). Also ``handed_turns``: the share of the
+    turning steps held by options that turn to one side at least ``handed`` of the time (left-turning and
+    right-turning walkers). A target that is constant over the steps gives ``nan``.
+
+    Args:
+        predicted (Tensor): ``[B, T]`` option per step (padding ignored).
+        data (TensorDictBase): :func:`~torchrl_options.experiments.minigrid.bot_demonstrations` data (``"skill"``,
+            ``"true_option"``, ``"action"``, ``"observation"``, ``("collector", "mask")``).
+
+    Keyword Args:
+        handed (float): the share of one side above which an option counts as turning to that side.
+            Defaults to 0.9.
+
+    Returns:
+        dict: one float per target, and ``handed_turns``.
+
+    Raises:
+        ValueError: a missing key, a shape that is not the data's ``[B, T]``, an observation that is not MiniGrid's
+            one-hot view and direction, or ``handed`` outside (0.5, 1].
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_options.envs.minigrid import observation_size
+        >>> obs = torch.zeros(1, 4, observation_size())
+        >>> data = TensorDict({"skill": torch.tensor([[0, 0, 1, 1]]), "true_option": torch.tensor([[0, 0, 1, 1]]),
+        ...                    "action": torch.tensor([[0, 1, 0, 1]]), "observation": obs,
+        ...                    ("collector", "mask"): torch.ones(1, 4, dtype=torch.bool)}, [1, 4])
+        >>> info = option_information(torch.tensor([[0, 1, 0, 1]]), data)  # the options are the turn's side
+        >>> info["turn_side"], info["skill"], info["handed_turns"]
+        (1.0, 0.0, 1.0)
+    """
+    from torchrl_options.envs.minigrid import NUM_OBJECT_TYPES, view_from_observation
+
+    if not isinstance(handed, (int, float)) or not 0.5 < float(handed) <= 1.0:
+        raise ValueError(f"handed must be a share in (0.5, 1], got {handed!r}.")
+    keys = data.keys(include_nested=True)
+    for key in (_MASK, "skill", "true_option", "action", "observation"):
+        if key not in keys:
+            raise ValueError(f"data has no {key!r}: option_information needs bot_demonstrations' data.")
+    mask = data.get(_MASK).bool()
+    pred = torch.as_tensor(predicted)
+    if tuple(pred.shape) != tuple(mask.shape):
+        raise ValueError(f"predicted must be [B, T] = {tuple(mask.shape)}, like the data, got {tuple(pred.shape)}.")
+    view, direction = view_from_observation(data.get("observation"))  # raises on another observation
+    w, h = view.shape[-2:]
+    carrying = view[..., :NUM_OBJECT_TYPES, w // 2, h - 1].argmax(-1)
+    action = data.get("action").reshape(mask.shape)
+    option = pred.long()[mask].numpy()
+    act = action.long()[mask].numpy()
+    targets = {"skill": data.get("skill"), "subgoal": data.get("true_option"), "action": action,
+               "direction": direction.argmax(-1), "carrying": carrying}  # fmt: skip
+    out = {name: _explained(option, value.long()[mask].numpy()) for name, value in targets.items()}
+    turn = np.isin(act, _TURNS)
+    out["turn_side"] = _explained(option[turn], act[turn])
+    held = 0
+    for o in np.unique(option[turn]):
+        sel = turn & (option == o)
+        if max((act[sel] == _TURNS[0]).mean(), (act[sel] == _TURNS[1]).mean()) >= handed:
+            held += int(sel.sum())
+    out["handed_turns"] = held / int(turn.sum()) if turn.any() else math.nan
+    return {name: out[name] for name in (*INFORMATION_TARGETS, "handed_turns")}

@@ -93,7 +93,8 @@ def segmentation_cell(
         A dict of plain data: ``level``, ``seed``, ``method``, ``num_steps``, ``fit`` (the log-likelihood per step,
         iterations, CPU seconds, DDO's warnings and option usage), ``labels`` (the Viterbi option of every valid
         step, one list per trajectory), ``action_agreement`` (the label accuracy of the options against the bot's
-        actions, best matching: 1 when the options are the actions renamed), and per granularity (``subgoal``,
+        actions, best matching: 1 when the options are the actions renamed), ``information`` (what the options track:
+        :func:`~torchrl_options.experiments.minigrid.scoring.option_information`), and per granularity (``subgoal``,
         ``skill``) the scores of ``ddo`` and of the baselines, and ``composition`` (what each option holds, against
         the subgoal types and the skills).
     """
@@ -104,6 +105,7 @@ def segmentation_cell(
         baseline_scores,
         GRANULARITIES,
         option_composition,
+        option_information,
         segmentation_scores,
     )
 
@@ -160,6 +162,7 @@ def segmentation_cell(
     actions = data["action"].reshape(mask.shape)
     out["action_agreement"] = segmentation_scores(seg.options, data.clone(False).set("action_label", actions),
                                                   label_key="action_label", switch_key="true_switch")["label_accuracy"]
+    out["information"] = option_information(seg.options, data)
     for name, (label_key, switch_key) in GRANULARITIES.items():
         scores = {"ddo": segmentation_scores(seg.options, data, label_key=label_key, switch_key=switch_key)}
         scores.update(baseline_scores(data, label_key=label_key, switch_key=switch_key, seed=seed))

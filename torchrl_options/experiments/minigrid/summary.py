@@ -18,6 +18,8 @@ __all__ = [
     "segmentation_summary",
     "segmentation_markdown",
     "composition_markdown",
+    "coverage_markdown",
+    "information_markdown",
 ]
 
 _ROWS = ("ddo", "action_change", "random", "one_option")
@@ -156,3 +158,73 @@ def composition_markdown(records: Iterable[dict], granularity: str = "subgoal") 
         )
     return "\n".join(lines) + "\n"
 
+
+
+def coverage_markdown(records: Iterable[dict], granularity: str = "skill") -> str:
+    """How whole each reference label stays, per level and method: the share of the label's steps that its
+    majority option holds (``majority_option`` of the composition), mean with its 95% Student-t interval over the
+    seeds, the smallest, and the number of seeds where no option holds half of it. Labels are sorted by their
+    share of the steps, largest first, read from the compositions (per option, the labels holding 0.05 of its
+    steps or more: a lower bound, shown as such). A label split over options costs best-matching label accuracy
+    as a merge does: a matched option scores only the part of its label it holds.
+
+    Examples:
+        >>> comp = lambda h: {"usage": [0.6, 0.4], "contents": [{"a": 0.9, "b": 0.1}, {"b": 1.0}],
+        ...                   "majority_option": {"a": [0, 1.0], "b": [1, h]}}
+        >>> recs = [{"level": "L", "seed": s, "method": {"network": "conv"}, "skill": {"composition": comp(h)}}
+        ...         for s, h in enumerate((0.8, 0.9))]
+        >>> print(coverage_markdown(recs).splitlines()[3])
+        | L | conv K=5 | b | 2 | 0.46 | 0.850 [0.215, 1.485] | 0.800 | 0 |
+    """
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in records:
+        groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
+    lines = ["| level | method | label | seeds | share of the steps (at least) | share its best option holds | "
+             "smallest | seeds under half |", "|---|---|---|---|---|---|---|---|"]
+    for (level, label), recs in sorted(groups.items()):
+        shares: dict[str, list[float]] = {}
+        held: dict[str, list[float]] = {}
+        for r in recs:
+            comp = r[granularity]["composition"]
+            total: dict[str, float] = {}
+            for usage, contents in zip(comp["usage"], comp["contents"]):
+                for name, part in contents.items():
+                    total[name] = total.get(name, 0.0) + usage * part
+            for name, (_, part) in comp["majority_option"].items():
+                held.setdefault(name, []).append(part)
+                shares.setdefault(name, []).append(total.get(name, 0.0))
+        for name in sorted(held, key=lambda n: (-sum(shares[n]) / len(shares[n]), n)):
+            parts = held[name]
+            lines.append(f"| {level} | {label} | {name} | {len(parts)} | {sum(shares[name]) / len(shares[name]):.2f} | "
+                         f"{_fmt(_interval(parts))} | {min(parts):.3f} | {sum(p < 0.5 for p in parts)} |")
+    return "\n".join(lines) + "\n"
+
+
+def information_markdown(records: Iterable[dict]) -> str:
+    """A Markdown table of :func:`~torchrl_options.experiments.minigrid.option_information` over seeds: per level and
+    method, the share of each target's entropy that the option explains and the share of the turning steps held
+    by one-sided options, means with 95% Student-t intervals. Records carry an ``"information"`` dict (those of
+    ``benchmarks/diagnose_minigrid_options.py``, or segmentation records that have one).
+
+    Examples:
+        >>> info = lambda x: {"skill": x, "subgoal": x, "action": 0.2, "turn_side": 0.9, "direction": 0.0,
+        ...                   "carrying": 0.1, "handed_turns": 0.8}
+        >>> recs = [{"level": "L", "seed": s, "method": {"network": "conv"}, "information": info(0.1 * s)}
+        ...         for s in range(3)]
+        >>> print(information_markdown(recs).splitlines()[2][:45])
+        | L | conv K=5 | 3 | 0.100 [-0.148, 0.348] |
+    """
+    from torchrl_options.experiments.minigrid.scoring import INFORMATION_TARGETS
+
+    names = (*INFORMATION_TARGETS, "handed_turns")
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in records:
+        if "information" in r:
+            groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
+    head = ("| level | method | seeds | " + " | ".join(n.replace("_", " ") for n in names) + " |\n"
+            + "|---" * (3 + len(names)) + "|\n")
+    lines = []
+    for (level, label), recs in sorted(groups.items()):
+        cells = [_fmt(_interval([r["information"][n] for r in recs])) for n in names]
+        lines.append(f"| {level} | {label} | {len(recs)} | " + " | ".join(cells) + " |")
+    return head + "\n".join(lines) + "\n"
