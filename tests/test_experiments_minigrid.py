@@ -273,6 +273,45 @@ def test_coverage_and_information_tables_over_seeds():
     assert len(text.splitlines()) == 3 and f"| L | conv K=5 | 3 | 0.600 [{lo:.3f}, {hi:.3f}] |" in text
 
 
+def test_with_previous_action_appends_the_last_action_and_keeps_steps_chained():
+    from tensordict import TensorDict
+
+    from torchrl_options.experiments.minigrid import with_previous_action
+
+    obs = torch.arange(2 * 4 * 3, dtype=torch.float32).reshape(2, 4, 3)
+    nxt = obs + 100
+    mask = torch.tensor([[True] * 4, [True, True, False, False]])
+    action = torch.tensor([[3, 0, 6, 1], [2, 5, -1, -1]])  # -1 on padding, as bot_demonstrations pads
+    data = TensorDict({"observation": obs, ("next", "observation"): nxt, "action": action,
+                       ("collector", "mask"): mask}, [2, 4])
+    out = with_previous_action(data)
+    assert out["observation"].shape == (2, 4, 10) and torch.equal(data["observation"], obs)  # input unchanged
+    assert torch.equal(out["observation"][..., :3], obs) and torch.equal(out["next", "observation"][..., :3], nxt)
+    prev = out["observation"][..., 3:]
+    assert prev[:, 0].abs().sum() == 0  # no previous action at a trajectory's start
+    assert prev[0, 1:].argmax(-1).tolist() == [3, 0, 6] and prev[1, 1].argmax().item() == 2
+    assert out["next", "observation"][0, :, 3:].argmax(-1).tolist() == [3, 0, 6, 1]
+    assert out["next", "observation"][1, 2:, 3:].abs().sum() == 0 and prev[1, 2:].abs().sum() == 0  # padding zero
+    # consecutive valid steps chain: the next observation of step t is the observation of step t + 1
+    assert torch.equal(out["next", "observation"][0, :3, 3:], out["observation"][0, 1:, 3:])
+    with pytest.raises(ValueError, match="'action' must be in 0..5"):
+        with_previous_action(data, 6)
+    with pytest.raises(ValueError, match="'action' must be integer"):
+        with_previous_action(data.clone().set("action", action.float()))
+    with pytest.raises(ValueError, match="has no"):
+        with_previous_action(data.exclude(("next", "observation")))
+    with pytest.raises(TypeError, match="num_actions"):
+        with_previous_action(data, 7.0)
+
+
+def test_option_factory_refuses_a_view_that_does_not_fit():
+    from torchrl_options.experiments.minigrid import option_factory
+
+    assert option_factory("conv", 3, in_features=991, extra_features=11)().extra_features == 11
+    with pytest.raises(ValueError, match="in_features must be"):
+        option_factory("conv", 3, in_features=991)
+
+
 def test_summary_table_intervals_are_student_t_over_seeds():
     from torchrl_options.experiments import mean_interval
     from torchrl_options.experiments.minigrid import segmentation_summary
@@ -310,6 +349,12 @@ def test_segmentation_cell_record_is_plain_data_and_baselines_do_not_depend_on_t
     from torchrl_options.experiments.minigrid.scoring import INFORMATION_TARGETS
 
     assert set(a["information"]) == {*INFORMATION_TARGETS, "handed_turns"}
+    c = segmentation_cell(TINY, 0, method={"network": "conv", "num_options": 2, "num_iterations": 2, "starts": "given",
+                                           "previous_action": True}, demonstrations=demos.data)
+    assert c["method"]["previous_action"] is True and c["num_steps"] == a["num_steps"]
+    assert c["skill"]["one_option"] == a["skill"]["one_option"]  # scored on the bot's own data
+    with pytest.raises(TypeError, match="previous_action"):
+        segmentation_cell(TINY, 0, method={"previous_action": 1}, demonstrations=demos.data)
 
 
 @needs_minigrid

@@ -520,3 +520,30 @@ def test_where_the_labels_go_figures_on_the_page_are_the_kept_records():
     up = by["BabyAI-UnlockPickup-v0"]
     assert sum(x["carrying"] for x in up) / 10 > sum(x["skill"] for x in up) / 10 > 0.25
     assert "on 9 and 8 of the 10\n  seeds" in section and "on 4 seeds of each level" in section
+
+
+def test_round13_previous_action_figures_on_the_page_are_the_kept_records():
+    """Round 13 (previous_action on the two tuning levels): its skill lines and information lines on the page are
+    the kept records, and the page's comparison holds: the one-sided turns are gone, the skill is explained less,
+    F1 +-2 and label accuracy fall against round 8 on the same layouts, and most fits reach a likelihood near 0."""
+    tuning = {level: set(range(5)) for level in ("BabyAI-UnlockPickup-v0", "BabyAI-BlockedUnlockPickup-v0")}
+    records, section = _kept_round("round13_previous_action", "**Options that see the previous action do worse**",
+                                   seeds=tuning, granularities=("skill",))
+    section = section[:section.index("## RL: options from the bot")]
+    assert all(r["method"]["previous_action"] is True for r in records)
+    lines = _table_lines(information_markdown(records))
+    assert len(lines) == 2 and not _quoted(lines, section), _quoted(lines, section)
+    new = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
+    old = {level: cell for (level, _), cell in segmentation_summary(_records("round8_conv_learned_meta"), "skill").items()}
+    before = {}
+    for r in _records("option_information"):
+        before.setdefault(r["level"], []).append(r["information"])
+    for level in tuning:
+        for metric in ("f1_w2", "label_accuracy"):
+            assert new[level]["ddo"][metric][0] < old[level]["ddo"][metric][0], (level, metric)
+        assert new[level]["ddo"]["f1_w2"][0] < new[level]["random"]["f1_w2"][0]
+        mine = [r["information"] for r in records if r["level"] == level]
+        for target in ("turn_side", "skill"):
+            assert sum(x[target] for x in mine) / 5 < sum(x[target] for x in before[level]) / 10, (level, target)
+    fits = sorted(r["fit"]["model_log_likelihood_per_step"] for r in records)
+    assert sum(-0.1 < x for x in fits) == 7 and "7 of the 10 fits reach -0.009 to -0.098" in section

@@ -26,6 +26,7 @@ from torchrl_options.experiments.minigrid.demonstrations import (
     SUBGOAL_TYPES,
     subgoal_name,
     TARGETS,
+    with_previous_action,
 )
 from torchrl_options.experiments.minigrid.pipeline import level_options, minigrid_cells, run_minigrid_cell
 from torchrl_options.experiments.minigrid.rl_summary import (
@@ -83,5 +84,6 @@ __all__ = [
     "SUBGOAL_TYPES",
     "subgoal_name",
     "TARGETS",
+    "with_previous_action",
     "write_minigrid_outputs",
 ]

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 from tensordict import pad_sequence, TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
 
 __all__ = [
     "BotDemonstrations",
@@ -46,6 +47,7 @@ __all__ = [
     "SUBGOAL_TYPES",
     "subgoal_name",
     "TARGETS",
+    "with_previous_action",
 ]
 
 logger = logging.getLogger(__name__)
@@ -378,3 +380,70 @@ def stack_demonstrations(parts: Sequence[TensorDictBase]) -> TensorDict:
     data = pad_sequence(rows)
     data.set(_MASK, torch.arange(data.shape[1])[None] < lengths[:, None])
     return data
+
+
+def with_previous_action(data: TensorDictBase, num_actions: int = 7, *, observation_key: NestedKey = "observation"
+                         ) -> TensorDictBase:
+    """The demonstrations with the previous action appended to each observation, one-hot (zeros at a trajectory's
+    first step), and the step's own action appended to its next observation, so that consecutive steps still chain.
+
+    The options, their terminations and a learned meta-control then see what the agent did last: a policy can
+    continue a turn without an option to remember its side, and a termination can see the action that ended a
+    skill. Padding stays zero.
+
+    Args:
+        data (TensorDictBase): ``[B, T]`` demonstrations with ``observation_key`` and ``("next", observation_key)``
+            ``[B, T, F]``, integer ``"action"`` ``[B, T]`` and ``("collector", "mask")``.
+        num_actions (int): the size of the action set. Defaults to 7 (MiniGrid's).
+
+    Keyword Args:
+        observation_key (NestedKey): the observation. Defaults to ``"observation"``.
+
+    Returns:
+        TensorDictBase: a copy with ``[B, T, F + num_actions]`` observations (the input is not changed).
+
+    Raises:
+        ValueError: a missing key, actions that are not integers in ``0 .. num_actions - 1`` on the valid steps,
+            or observations that are not ``[B, T, F]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"observation": torch.zeros(1, 3, 2), ("next", "observation"): torch.zeros(1, 3, 2),
+        ...                    "action": torch.tensor([[2, 0, 1]]), ("collector", "mask"): torch.ones(1, 3, dtype=torch.bool)},
+        ...                   [1, 3])
+        >>> out = with_previous_action(data, 3)
+        >>> out["observation"][0, :, 2:].tolist()
+        [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
+        >>> out["next", "observation"][0, 0, 2:].tolist()  # step 0's next observation: the action it took
+        [0.0, 0.0, 1.0]
+    """
+    from torchrl_options.checks import check_int
+
+    check_int(num_actions, "num_actions", minimum=1)
+    keys = data.keys(include_nested=True)
+    next_key = ("next", *((observation_key,) if isinstance(observation_key, str) else tuple(observation_key)))
+    for key in (observation_key, next_key, "action", ("collector", "mask")):
+        if key not in keys:
+            raise ValueError(f"data has no {key!r}: with_previous_action needs [B, T] demonstrations.")
+    mask = data.get(("collector", "mask")).bool()
+    obs = data.get(observation_key)
+    if obs.dim() != 3 or tuple(obs.shape[:2]) != tuple(mask.shape):
+        raise ValueError(f"{observation_key!r} must be [B, T, F] with [B, T] = {tuple(mask.shape)}, got {tuple(obs.shape)}.")
+    action = data.get("action")
+    if action.is_floating_point() or action.reshape(-1).numel() != mask.numel():
+        raise ValueError(f"'action' must be integer [B, T] = {tuple(mask.shape)} (an index per step), got "
+                         f"{action.dtype} of shape {tuple(action.shape)}.")
+    action = action.reshape(mask.shape).long()
+    valid = action[mask]
+    if valid.numel() and (int(valid.min()) < 0 or int(valid.max()) >= num_actions):
+        raise ValueError(f"'action' must be in 0..{num_actions - 1} on the valid steps, got values in "
+                         f"{int(valid.min())}..{int(valid.max())}.")
+    taken = torch.nn.functional.one_hot(action.clamp(0, num_actions - 1), num_actions).to(obs.dtype)
+    taken = taken * mask.unsqueeze(-1).to(obs.dtype)
+    previous = torch.zeros_like(taken)
+    previous[:, 1:] = taken[:, :-1] * mask[:, 1:].unsqueeze(-1).to(obs.dtype)
+    out = data.clone()
+    out.set(observation_key, torch.cat([obs, previous], -1))
+    out.set(next_key, torch.cat([data.get(next_key), taken], -1))
+    return out

@@ -36,9 +36,12 @@ LAYOUTS_PER_SEED = 1000
 
 
 def option_factory(network: str, num_options: int, *, num_actions: int = 7, in_features: int = 984,
-                   num_cells=8, conv: dict | None = None) -> Callable[[], torch.nn.Module] | None:
+                   num_cells=8, conv: dict | None = None, extra_features: int | None = None,
+                   ) -> Callable[[], torch.nn.Module] | None:
     """A callable making fresh options modules of ``network`` (``None`` for ``"mlp"``: ``discover_options`` builds
-    its default modules itself).
+    its default modules itself). For ``"conv"``, the observation is the one-hot view then ``extra_features``
+    features (default: the direction's 4; with :func:`~torchrl_options.experiments.minigrid.with_previous_action`,
+    4 + the number of actions).
 
     Examples:
         >>> make = option_factory("conv", 3)
@@ -59,9 +62,12 @@ def option_factory(network: str, num_options: int, *, num_actions: int = 7, in_f
     from torchrl_options.envs.minigrid import DIRECTIONS, VIEW_CHANNELS
     from torchrl_options.modules import GridConvOptions
 
-    view = int(round(((in_features - DIRECTIONS) / VIEW_CHANNELS) ** 0.5))
+    extra = DIRECTIONS if extra_features is None else int(extra_features)
+    view = int(round(((in_features - extra) / VIEW_CHANNELS) ** 0.5))
+    if VIEW_CHANNELS * view * view + extra != in_features:
+        raise ValueError(f"in_features must be {VIEW_CHANNELS} x view x view + extra_features ({extra}), got {in_features}.")
     return lambda: GridConvOptions(num_actions, num_options, channels=VIEW_CHANNELS, view_size=view,
-                                   extra_features=DIRECTIONS, **(conv or {}))  # fmt: skip
+                                   extra_features=extra, **(conv or {}))  # fmt: skip
 
 
 def segmentation_cell(
@@ -82,7 +88,9 @@ def segmentation_cell(
     Keyword Args:
         method (dict, optional): ``network`` (:data:`NETWORKS`, default ``"mlp"``), ``num_options`` (default 5),
             ``conv`` (keyword arguments of :class:`~torchrl_options.modules.GridConvOptions`), ``starts``
-            (:data:`STARTS`, default ``"factory"``; not for ``"mlp"``) and any other
+            (:data:`STARTS`, default ``"factory"``; not for ``"mlp"``), ``previous_action`` (bool, default
+            ``False``: the options see the demonstrations of
+            :func:`~torchrl_options.experiments.minigrid.with_previous_action`; the scores use the bot's own) and any other
             :func:`~torchrl_options.discover_options` keyword argument. ``{}``: issue 50's probe
             (``discover_options(data, num_options=5)`` with the defaults).
         num_demonstrations (int): bot episodes. Defaults to 100.
@@ -100,7 +108,13 @@ def segmentation_cell(
     """
     from torchrl_options import discover_options, segment
     from torchrl_options.checks import check_choice
-    from torchrl_options.experiments.minigrid.demonstrations import bot_demonstrations, SKILLS, SUBGOAL_TYPES
+    from torchrl_options.envs.minigrid import DIRECTIONS
+    from torchrl_options.experiments.minigrid.demonstrations import (
+        bot_demonstrations,
+        SKILLS,
+        SUBGOAL_TYPES,
+        with_previous_action,
+    )
     from torchrl_options.experiments.minigrid.scoring import (
         baseline_scores,
         GRANULARITIES,
@@ -114,6 +128,9 @@ def segmentation_cell(
     num_options = int(method.pop("num_options", 5))
     conv = method.pop("conv", None)
     starts = method.pop("starts", None)
+    previous_action = method.pop("previous_action", False)
+    if not isinstance(previous_action, bool):
+        raise TypeError(f"method: previous_action must be a bool, got {previous_action!r}.")
     check_choice(network, "network", NETWORKS)
     if network == "mlp" and starts is not None:
         raise ValueError("method: starts is for the modules of option_factory (network 'mlp-module' or 'conv'); "
@@ -123,9 +140,11 @@ def segmentation_cell(
         check_choice(starts, "starts", STARTS)
     if demonstrations is None:
         demonstrations = bot_demonstrations(level, num_demonstrations, first_seed=LAYOUTS_PER_SEED * seed).data
-    data = demonstrations
+    labelled = demonstrations  # the bot's observations, for the scores
+    data = with_previous_action(labelled) if previous_action else labelled
     factory = option_factory(network, num_options, in_features=int(data["observation"].shape[-1]),
-                             num_cells=method.get("num_cells", 8), conv=conv)  # fmt: skip
+                             num_cells=method.get("num_cells", 8), conv=conv,
+                             extra_features=DIRECTIONS + 7 if previous_action else None)  # fmt: skip
     modules: dict = {}
     if starts == "factory":
         modules["options_factory"] = factory  # called after discover_options seeds: the weights come from seed
@@ -144,7 +163,8 @@ def segmentation_cell(
         "level": level,
         "seed": seed,
         "method": {"network": network, "num_options": num_options, **({"conv": conv} if conv else {}),
-                   **({"starts": starts} if starts is not None else {}), **method,
+                   **({"starts": starts} if starts is not None else {}),
+                   **({"previous_action": True} if previous_action else {}), **method,
                    **({"num_cells": num_cells} if num_cells is not None else {})},
         "num_steps": int(data["collector", "mask"].sum()),
         "fit": {
@@ -162,7 +182,7 @@ def segmentation_cell(
     actions = data["action"].reshape(mask.shape)
     out["action_agreement"] = segmentation_scores(seg.options, data.clone(False).set("action_label", actions),
                                                   label_key="action_label", switch_key="true_switch")["label_accuracy"]
-    out["information"] = option_information(seg.options, data)
+    out["information"] = option_information(seg.options, labelled)
     for name, (label_key, switch_key) in GRANULARITIES.items():
         scores = {"ddo": segmentation_scores(seg.options, data, label_key=label_key, switch_key=switch_key)}
         scores.update(baseline_scores(data, label_key=label_key, switch_key=switch_key, seed=seed))
