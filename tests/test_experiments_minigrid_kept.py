@@ -547,3 +547,20 @@ def test_round13_previous_action_figures_on_the_page_are_the_kept_records():
             assert sum(x[target] for x in mine) / 5 < sum(x[target] for x in before[level]) / 10, (level, target)
     fits = sorted(r["fit"]["model_log_likelihood_per_step"] for r in records)
     assert sum(-0.1 < x for x in fits) == 7 and "7 of the 10 fits reach -0.009 to -0.098" in section
+
+
+def test_readme_segmentation_row_is_the_ten_seed_records():
+    """The README's MiniGrid segmentation row: DDO's means against the baselines' over the 10 seeds of rounds 8, 10
+    and 11, for the passing and the failing level, and the count of tied levels."""
+    records = _records("round8_conv_learned_meta") + _records("round10_new_levels") + _records("round11_seeds_5_to_9")
+    skill = {level: cell for (level, _), cell in segmentation_summary(records, "skill").items()}
+    with open(os.path.join(ROOT, "README.md")) as f:
+        row = [line for line in f if line.startswith("| MiniGrid segmentation")][0]
+    for level, verdict in (("UnlockPickup", "passes"), ("KeyCorridorS3R2", "fails")):
+        cell = skill[f"BabyAI-{level}-v0"]
+        f1 = f"{cell['ddo']['f1_w2'][0]:.3f} vs {cell['random']['f1_w2'][0]:.3f}"
+        labels = f"{cell['ddo']['label_accuracy'][0]:.3f} vs {cell['one_option']['label_accuracy'][0]:.3f}"
+        assert f"{level} {f1}, {labels} ({verdict})" in row, (level, f1, labels)
+    passes = [lv for lv, c in skill.items() if _beats(c, "f1_w2", "random") and _beats(c, "label_accuracy", "one_option")]
+    fails = [lv for lv, c in skill.items() if _below(c, "label_accuracy", "one_option") or _below(c, "f1_w2", "random")]
+    assert passes == ["BabyAI-UnlockPickup-v0"] and fails == ["BabyAI-KeyCorridorS3R2-v0"] and "3 levels tie" in row
