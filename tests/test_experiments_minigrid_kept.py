@@ -564,3 +564,23 @@ def test_readme_segmentation_row_is_the_ten_seed_records():
     passes = [lv for lv, c in skill.items() if _beats(c, "f1_w2", "random") and _beats(c, "label_accuracy", "one_option")]
     fails = [lv for lv, c in skill.items() if _below(c, "label_accuracy", "one_option") or _below(c, "f1_w2", "random")]
     assert passes == ["BabyAI-UnlockPickup-v0"] and fails == ["BabyAI-KeyCorridorS3R2-v0"] and "3 levels tie" in row
+
+
+def test_round14_pre_registered_predictions_hold_on_the_kept_records():
+    """Round 14 (KeyCorridorS3R3, never run before, predictions committed before the run): its table lines are on the
+    page, and the three predictions hold as the page says: label accuracy below one option everywhere (interval
+    clear), the turn's side explained more than the skill on all 5 seeds, F1 +-2 above both boundary baselines."""
+    level = "BabyAI-KeyCorridorS3R3-v0"
+    records, section = _kept_round("round14_keycorridor_s3r3", "**Round 14, pre-registered**",
+                                   seeds={level: set(range(5))}, granularities=("skill",))
+    section = section[:section.index("## RL: options from the bot")]
+    lines = _table_lines(segmentation_markdown(records, "skill")) + _table_lines(information_markdown(records))
+    assert len(lines) == 5 and not _quoted(lines, section), _quoted(lines, section)
+    cell = segmentation_summary(records, "skill")[(level, "conv K=5 meta_control=learned starts=given")]
+    assert _below(cell, "label_accuracy", "one_option")
+    assert sum(r["information"]["turn_side"] > r["information"]["skill"] for r in records) == 5
+    assert sum(r["information"]["handed_turns"] >= 0.5 for r in records) == 2
+    assert _beats(cell, "f1_w2", "random") and _beats(cell, "f1_w2", "action_change")
+    assert "All three predictions hold" in section
+    door = [x for x in _table_lines(coverage_markdown(records, "skill")) if "| open door |" in x][0].split("|")
+    assert door[5].strip() == "0.59" and door[6].split()[0] == "0.491" and door[8].strip() == "3"
