@@ -410,8 +410,8 @@ def with_previous_action(data: TensorDictBase, num_actions: int = 7, *, observat
         >>> import torch
         >>> from tensordict import TensorDict
         >>> data = TensorDict({"observation": torch.zeros(1, 3, 2), ("next", "observation"): torch.zeros(1, 3, 2),
-        ...                    "action": torch.tensor([[2, 0, 1]]), ("collector", "mask"): torch.ones(1, 3, dtype=torch.bool)},
-        ...                   [1, 3])
+        ...                    "action": torch.tensor([[2, 0, 1]]),
+        ...                    ("collector", "mask"): torch.ones(1, 3, dtype=torch.bool)}, [1, 3])
         >>> out = with_previous_action(data, 3)
         >>> out["observation"][0, :, 2:].tolist()
         [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
@@ -429,7 +429,8 @@ def with_previous_action(data: TensorDictBase, num_actions: int = 7, *, observat
     mask = data.get(("collector", "mask")).bool()
     obs = data.get(observation_key)
     if obs.dim() != 3 or tuple(obs.shape[:2]) != tuple(mask.shape):
-        raise ValueError(f"{observation_key!r} must be [B, T, F] with [B, T] = {tuple(mask.shape)}, got {tuple(obs.shape)}.")
+        raise ValueError(f"{observation_key!r} must be [B, T, F] with [B, T] = {tuple(mask.shape)}, "
+                         f"got {tuple(obs.shape)}.")
     action = data.get("action")
     if action.is_floating_point() or action.reshape(-1).numel() != mask.numel():
         raise ValueError(f"'action' must be integer [B, T] = {tuple(mask.shape)} (an index per step), got "

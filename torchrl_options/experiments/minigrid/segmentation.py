@@ -65,7 +65,8 @@ def option_factory(network: str, num_options: int, *, num_actions: int = 7, in_f
     extra = DIRECTIONS if extra_features is None else int(extra_features)
     view = int(round(((in_features - extra) / VIEW_CHANNELS) ** 0.5))
     if VIEW_CHANNELS * view * view + extra != in_features:
-        raise ValueError(f"in_features must be {VIEW_CHANNELS} x view x view + extra_features ({extra}), got {in_features}.")
+        raise ValueError(f"in_features must be {VIEW_CHANNELS} x view x view + extra_features ({extra}), "
+                         f"got {in_features}.")
     return lambda: GridConvOptions(num_actions, num_options, channels=VIEW_CHANNELS, view_size=view,
                                    extra_features=extra, **(conv or {}))  # fmt: skip
 
@@ -90,8 +91,8 @@ def segmentation_cell(
             ``conv`` (keyword arguments of :class:`~torchrl_options.modules.GridConvOptions`), ``starts``
             (:data:`STARTS`, default ``"factory"``; not for ``"mlp"``), ``previous_action`` (bool, default
             ``False``: the options see the demonstrations of
-            :func:`~torchrl_options.experiments.minigrid.with_previous_action`; the scores use the bot's own) and any other
-            :func:`~torchrl_options.discover_options` keyword argument. ``{}``: issue 50's probe
+            :func:`~torchrl_options.experiments.minigrid.with_previous_action`; the scores use the bot's own) and
+            any other :func:`~torchrl_options.discover_options` keyword argument. ``{}``: issue 50's probe
             (``discover_options(data, num_options=5)`` with the defaults).
         num_demonstrations (int): bot episodes. Defaults to 100.
         demonstrations (TensorDict, optional): use these instead of generating them.
