@@ -23,6 +23,7 @@ import sys
 import torch
 
 from torchrl_options.experiments.minigrid import bot_demonstrations, option_information
+from torchrl_options.experiments.minigrid.segmentation import LAYOUTS_PER_SEED
 from torchrl_options.experiments.minigrid.summary import append_record, information_markdown, method_label, read_records
 
 
@@ -49,7 +50,7 @@ def main(argv=None) -> int:
         key = (r["level"], method_label(r["method"]), r["seed"])
         if key in done:
             continue
-        demos = bot_demonstrations(r["level"], args.demonstrations, first_seed=1000 * r["seed"])
+        demos = bot_demonstrations(r["level"], args.demonstrations, first_seed=LAYOUTS_PER_SEED * r["seed"])
         data = demos.data
         if demos.num_steps != r["num_steps"] or len(r["labels"]) != data.shape[0]:
             print(f"error: {key}: the demonstrations made again have {demos.num_steps} steps in {data.shape[0]} "

@@ -240,13 +240,21 @@ def test_option_information_is_the_explained_share_of_each_target():
 
 
 def test_option_information_rejects_bad_input_at_the_door():
+    import math
+
     from torchrl_options.experiments.minigrid import option_information
 
     data = _viewed([[0, 1]], [[0, 1]])
     with pytest.raises(ValueError, match="predicted must be"):
         option_information(torch.zeros(1, 3, dtype=torch.long), data)
-    with pytest.raises(ValueError, match="handed"):
-        option_information(torch.zeros(1, 2, dtype=torch.long), data, handed=0.4)
+    for handed in (0.4, float("nan"), True):
+        with pytest.raises(ValueError, match="handed"):
+            option_information(torch.zeros(1, 2, dtype=torch.long), data, handed=handed)
+    with pytest.raises(TypeError, match="integer option indices"):
+        option_information(torch.zeros(1, 2), data)
+    # no valid step: nothing to explain, every share nan (not a crash)
+    empty = data.clone().set(("collector", "mask"), torch.zeros(1, 2, dtype=torch.bool))
+    assert all(math.isnan(v) for v in option_information(torch.zeros(1, 2, dtype=torch.long), empty).values())
     with pytest.raises(ValueError, match="'observation'"):
         option_information(torch.zeros(1, 2, dtype=torch.long), data.exclude("observation"))
     with pytest.raises(ValueError, match="observation must have"):
@@ -269,6 +277,8 @@ def test_coverage_and_information_tables_over_seeds():
     # b (0.55 of the steps) before a (0.45); the split one held at 0.6 on average, under half on one seed
     assert lines[2].startswith("| L | conv K=5 | b | 3 | 0.55 | ") and lines[3].startswith("| L | conv K=5 | a | 3 | 0.45 |")
     assert f"| 0.600 [{lo:.3f}, {hi:.3f}] | 0.400 | 1 |" in lines[2]
+    with pytest.raises(ValueError, match="granularity"):
+        coverage_markdown(recs, "skills")
     text = information_markdown(recs + [{"level": "M", "seed": 0, "method": {}}])  # records without it are left out
     assert len(text.splitlines()) == 3 and f"| L | conv K=5 | 3 | 0.600 [{lo:.3f}, {hi:.3f}] |" in text
 

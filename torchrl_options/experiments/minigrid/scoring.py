@@ -234,8 +234,6 @@ def option_composition(
 #: What :func:`option_information` measures the options against, in its order.
 INFORMATION_TARGETS = ("skill", "subgoal", "action", "turn_side", "direction", "carrying")
 
-# MiniGrid's actions 0 and 1 turn left and right; the agent's cell in the egocentric view is the bottom centre
-_TURNS = (0, 1)
 
 
 def _entropy(counts: np.ndarray) -> float:
@@ -267,7 +265,7 @@ def option_information(predicted: torch.Tensor, data: TensorDictBase, *, handed:
     ``direction`` (the agent's heading, from the observation's last four features) and ``carrying`` (the object type
     shown on the agent's own cell of the egocentric view: what it carries). Also ``handed_turns``: the share of the
     turning steps held by options that turn to one side at least ``handed`` of the time (left-turning and
-    right-turning walkers). A target that is constant over the steps gives ``nan``.
+    right-turning walkers). A target that is constant over the steps (or data without a valid step) gives ``nan``.
 
     Args:
         predicted (Tensor): ``[B, T]`` option per step (padding ignored).
@@ -284,6 +282,7 @@ def option_information(predicted: torch.Tensor, data: TensorDictBase, *, handed:
     Raises:
         ValueError: a missing key, a shape that is not the data's ``[B, T]``, an observation that is not MiniGrid's
             one-hot view and direction, or ``handed`` outside (0.5, 1].
+        TypeError: ``predicted`` that is not integer.
 
     Examples:
         >>> import torch
@@ -297,9 +296,11 @@ def option_information(predicted: torch.Tensor, data: TensorDictBase, *, handed:
         >>> info["turn_side"], info["skill"], info["handed_turns"]
         (1.0, 0.0, 1.0)
     """
-    from torchrl_options.envs.minigrid import NUM_OBJECT_TYPES, view_from_observation
+    from torchrl_options.envs.minigrid import MINIGRID_ACTIONS, NUM_OBJECT_TYPES, view_from_observation
 
-    if not isinstance(handed, (int, float)) or not 0.5 < float(handed) <= 1.0:
+    turns = (MINIGRID_ACTIONS.index("left"), MINIGRID_ACTIONS.index("right"))
+
+    if isinstance(handed, bool) or not isinstance(handed, (int, float)) or not 0.5 < float(handed) <= 1.0:
         raise ValueError(f"handed must be a share in (0.5, 1], got {handed!r}.")
     keys = data.keys(include_nested=True)
     for key in (_MASK, "skill", "true_option", "action", "observation"):
@@ -307,23 +308,25 @@ def option_information(predicted: torch.Tensor, data: TensorDictBase, *, handed:
             raise ValueError(f"data has no {key!r}: option_information needs bot_demonstrations' data.")
     mask = data.get(_MASK).bool()
     pred = torch.as_tensor(predicted)
+    if pred.is_floating_point() or pred.is_complex() or pred.dtype == torch.bool:
+        raise TypeError(f"predicted must hold integer option indices, got {pred.dtype}.")
     if tuple(pred.shape) != tuple(mask.shape):
         raise ValueError(f"predicted must be [B, T] = {tuple(mask.shape)}, like the data, got {tuple(pred.shape)}.")
     view, direction = view_from_observation(data.get("observation"))  # raises on another observation
     w, h = view.shape[-2:]
-    carrying = view[..., :NUM_OBJECT_TYPES, w // 2, h - 1].argmax(-1)
+    carrying = view[..., :NUM_OBJECT_TYPES, w // 2, h - 1].argmax(-1)  # the agent's own cell: bottom centre
     action = data.get("action").reshape(mask.shape)
     option = pred.long()[mask].numpy()
     act = action.long()[mask].numpy()
     targets = {"skill": data.get("skill"), "subgoal": data.get("true_option"), "action": action,
                "direction": direction.argmax(-1), "carrying": carrying}  # fmt: skip
     out = {name: _explained(option, value.long()[mask].numpy()) for name, value in targets.items()}
-    turn = np.isin(act, _TURNS)
+    turn = np.isin(act, turns)
     out["turn_side"] = _explained(option[turn], act[turn])
     held = 0
     for o in np.unique(option[turn]):
         sel = turn & (option == o)
-        if max((act[sel] == _TURNS[0]).mean(), (act[sel] == _TURNS[1]).mean()) >= handed:
+        if max((act[sel] == side).mean() for side in turns) >= handed:
             held += int(sel.sum())
     out["handed_turns"] = held / int(turn.sum()) if turn.any() else math.nan
     return {name: out[name] for name in (*INFORMATION_TARGETS, "handed_turns")}

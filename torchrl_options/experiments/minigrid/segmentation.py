@@ -109,7 +109,7 @@ def segmentation_cell(
     """
     from torchrl_options import discover_options, segment
     from torchrl_options.checks import check_choice
-    from torchrl_options.envs.minigrid import DIRECTIONS
+    from torchrl_options.envs.minigrid import DIRECTIONS, MINIGRID_ACTIONS
     from torchrl_options.experiments.minigrid.demonstrations import (
         bot_demonstrations,
         SKILLS,
@@ -145,7 +145,7 @@ def segmentation_cell(
     data = with_previous_action(labelled) if previous_action else labelled
     factory = option_factory(network, num_options, in_features=int(data["observation"].shape[-1]),
                              num_cells=method.get("num_cells", 8), conv=conv,
-                             extra_features=DIRECTIONS + 7 if previous_action else None)  # fmt: skip
+                             extra_features=DIRECTIONS + len(MINIGRID_ACTIONS) if previous_action else None)  # fmt: skip
     modules: dict = {}
     if starts == "factory":
         modules["options_factory"] = factory  # called after discover_options seeds: the weights come from seed

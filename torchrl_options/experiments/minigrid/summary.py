@@ -66,6 +66,14 @@ def append_record(path: str | Path, record: dict) -> None:
         f.write(json.dumps(record, sort_keys=True) + "\n")
 
 
+def _groups(records: Iterable[dict]) -> dict[tuple[str, str], list[dict]]:
+    """Records by (level, method label), in their order."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in records:
+        groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
+    return groups
+
+
 def _interval(values: Sequence[float]) -> tuple[float, float, float]:
     from torchrl_options.experiments import mean_interval
 
@@ -90,11 +98,8 @@ def segmentation_summary(records: Iterable[dict], granularity: str = "subgoal") 
         >>> cell["seeds"], [round(x, 3) for x in cell["ddo"]["label_accuracy"]]
         (3, [0.6, 0.352, 0.848])
     """
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in records:
-        groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
     out = {}
-    for key, recs in groups.items():
+    for key, recs in _groups(records).items():
         recs = sorted(recs, key=lambda r: r["seed"])
         cell: dict = {"seeds": len(recs), "seed_list": [r["seed"] for r in recs]}
         for row in _ROWS:
@@ -159,7 +164,6 @@ def composition_markdown(records: Iterable[dict], granularity: str = "subgoal") 
     return "\n".join(lines) + "\n"
 
 
-
 def coverage_markdown(records: Iterable[dict], granularity: str = "skill") -> str:
     """How whole each reference label stays, per level and method: the share of the label's steps that its
     majority option holds (``majority_option`` of the composition), mean with its 95% Student-t interval over the
@@ -176,12 +180,13 @@ def coverage_markdown(records: Iterable[dict], granularity: str = "skill") -> st
         >>> print(coverage_markdown(recs).splitlines()[3])
         | L | conv K=5 | b | 2 | 0.46 | 0.850 [0.215, 1.485] | 0.800 | 0 |
     """
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in records:
-        groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
+    from torchrl_options.checks import check_choice
+    from torchrl_options.experiments.minigrid.scoring import GRANULARITIES
+
+    check_choice(granularity, "granularity", tuple(GRANULARITIES))
     lines = ["| level | method | label | seeds | share of the steps (at least) | share its best option holds | "
              "smallest | seeds under half |", "|---|---|---|---|---|---|---|---|"]
-    for (level, label), recs in sorted(groups.items()):
+    for (level, label), recs in sorted(_groups(records).items()):
         shares: dict[str, list[float]] = {}
         held: dict[str, list[float]] = {}
         for r in recs:
@@ -217,14 +222,10 @@ def information_markdown(records: Iterable[dict]) -> str:
     from torchrl_options.experiments.minigrid.scoring import INFORMATION_TARGETS
 
     names = (*INFORMATION_TARGETS, "handed_turns")
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in records:
-        if "information" in r:
-            groups.setdefault((r["level"], method_label(r["method"])), []).append(r)
     head = ("| level | method | seeds | " + " | ".join(n.replace("_", " ") for n in names) + " |\n"
             + "|---" * (3 + len(names)) + "|\n")
     lines = []
-    for (level, label), recs in sorted(groups.items()):
+    for (level, label), recs in sorted(_groups(r for r in records if "information" in r).items()):
         cells = [_fmt(_interval([r["information"][n] for r in recs])) for n in names]
         lines.append(f"| {level} | {label} | {len(recs)} | " + " | ".join(cells) + " |")
     return head + "\n".join(lines) + "\n"
