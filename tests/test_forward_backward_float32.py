@@ -292,6 +292,55 @@ def test_partial_loads_and_stores_touch_only_n_lanes(n):
 
 
 
+def test_eight_maxima_at_once_and_the_sum_in_every_lane():
+    """``vhmax8`` is ``vhmax`` of each of its eight inputs (``-inf`` and ties of zeros included); ``vsumv`` holds
+    ``vsum``'s value, bit for bit, in every lane; ``vfirst`` is lane 0."""
+    import numba
+
+    from torchrl_options.inference import _simd as s
+
+    @numba.njit
+    def lanes(x, y, out):
+        m = s.vhmax8(s.vload(x, 0), s.vload(x, 8), s.vload(x, 16), s.vload(x, 24), s.vload(x, 32), s.vload(x, 40),
+                     s.vload(x, 48), s.vload(x, 56))  # fmt: skip
+        s.vstore(out, 0, m)
+        for i in range(8):
+            out[8 + i] = s.vhmax(s.vload(x, 8 * i))
+        s.vstore(out, 16, s.vsumv(s.vload(y, 0)))
+        out[24] = s.vsum(s.vload(y, 0))
+        out[25] = s.vfirst(s.vload(x, 8))
+
+    rng = np.random.default_rng(0)
+    for trial in range(100):
+        x = (rng.standard_normal(64) * 10 ** rng.uniform(-3, 3, 64)).astype(np.float32)
+        x[rng.integers(0, 64, 6)] = -np.inf
+        if trial % 10 == 0:
+            x[8 * (trial // 10 % 8): 8 * (trial // 10 % 8) + 8] = -np.inf  # a vector of -inf only
+        y = np.where(np.isfinite(x[:8]), x[:8], np.float32(trial)).astype(np.float32)
+        out = np.empty(32, np.float32)
+        lanes(x, y, out)
+        assert np.array_equal(out[:8], x.reshape(8, 8).max(1)) and np.array_equal(out[:8], out[8:16])
+        assert (out[16:24] == out[24]).all() and out[25] == x[8]
+        assert abs(float(out[24]) - float(y.astype(np.float64).sum())) <= 1e-6 * np.abs(y).sum()
+
+
+@pytest.mark.parametrize("K", [3, 8, 12])
+@pytest.mark.parametrize("T,step", [(40, 17), (43, 41), (43, 38), (9, 0)])
+def test_a_step_no_option_can_produce_is_named_wherever_it_falls(K, T, step):
+    """A step whose every ``log pi`` is ``-inf`` (zero likelihood) inside a block of eight steps of the shift pass,
+    in its tail (rows whose length is not a multiple of 8) or at the first step: the row is named, the others
+    stay as the reference has them."""
+    xs, mask, terminal = make_case(4, T, K, torch.float32, pad=False, seed=3)
+    log_pi = xs[0].clone()
+    log_pi[2, step] = float("-inf")
+    with pytest.raises(ValueError, match=r"trajectories \[2\] have zero likelihood"):
+        forward_backward(log_pi, *xs[1:], backend="numba")
+    keep = torch.tensor([0, 1, 3])
+    sub = [x[keep] for x in (log_pi, *xs[1:])]
+    out = forward_backward(*sub, backend="numba")
+    assert_close_outputs(forward_backward(*sub, backend="reference"), out, torch.float32)
+
+
 def test_without_the_float32_kernel_float32_takes_the_float64_kernel(monkeypatch):
     """Where the float32 kernel could not be compiled, float32 inputs run the float64 kernel: same answers, same
     gradient identities."""

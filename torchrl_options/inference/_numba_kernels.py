@@ -24,8 +24,10 @@ from torchrl_options.inference._simd import (  # noqa: F401 (EXP_CONSTANTS: the 
     vadd,
     vdiv,
     vexp,
+    vfirst,
     vfma,
     vhmax,
+    vhmax8,
     vhmin,
     vload,
     vload_n,
@@ -38,6 +40,7 @@ from torchrl_options.inference._simd import (  # noqa: F401 (EXP_CONSTANTS: the 
     vsub,
     vsum,
     vsum2,
+    vsumv,
 )
 
 _FASTMATH = {"nnan", "contract", "reassoc", "nsz"}
@@ -435,16 +438,50 @@ def _start32(leb, K, NC, KP, X, padv, ec):
 
 
 @_jit(inline="always")
-def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, pad, ec):
+def _stepmax(lpb, o, K, NC):
+    """The lane-wise maximum of the ``NC`` vectors of one step's ``log_pi`` (at element offset ``o``)."""
+    mx = _ld(lpb, o, K)
+    for c in range(1, NC):
+        mx = vmax(mx, _ld(lpb, o + c * _W, K - c * _W))
+    return mx
+
+
+@_jit(inline="always")
+def _shifts32(lpb, n, K, NC, SH):
+    """``SH[t]``: the shift of step ``t < n``, its largest ``log pi``, eight steps at a time (:func:`vhmax8`), in
+    a pass before the forward one (there the shift's horizontal maximum sat on every step's path to its
+    exponentials: 9% of the kernel's time at K = 8). Returns their sum (float64). A step whose every ``log pi`` is
+    ``-inf`` gets -3.4e38 (its factors stay exact zeros, and the row, of zero likelihood, fails the certificate)."""
+    t = 0
+    tot = 0.0
+    lo = vsplat(np.float32(-3.4e38))
+    while t + _W <= n:
+        o = t * K
+        m = vhmax8(_stepmax(lpb, o, K, NC), _stepmax(lpb, o + K, K, NC), _stepmax(lpb, o + 2 * K, K, NC),
+                   _stepmax(lpb, o + 3 * K, K, NC), _stepmax(lpb, o + 4 * K, K, NC), _stepmax(lpb, o + 5 * K, K, NC),
+                   _stepmax(lpb, o + 6 * K, K, NC), _stepmax(lpb, o + 7 * K, K, NC))  # fmt: skip
+        vstore(SH, t, vmax(m, lo))
+        for j in range(_W):
+            tot += np.float64(SH[t + j])
+        t += _W
+    while t < n:
+        m = vhmax(_stepmax(lpb, t * K, K, NC))
+        if m == _NINF32:
+            m = np.float32(-3.4e38)
+        SH[t] = m
+        tot += np.float64(m)
+        t += 1
+    return tot
+
+
+@_jit(inline="always")
+def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, SH, a, chk, mn, fx, prod, llv, pad, ec):
     """Forward step ``t -> t + 1`` for K <= 8 (one vector per step), the message ``a`` kept in a register: the
     step's factors (stored in ``X`` for the backward pass) and the new normalised message."""
     j = t * 4 * _W
     o = t * K
     lpv = _ld(lpb, o, K)
-    m = vhmax(lpv)  # the step's shift: its largest log pi
-    if m == _NINF32:
-        m = _Z32
-    p = vsub(lpv, vsplat(m))
+    p = vsub(lpv, vsplat(SH[t]))  # the step's shift: its largest log pi
     x1 = vadd(p, _ld(lcb, o, K))
     x2 = vadd(p, _ld(ltb, o, K))
     y = _ld(leb, o + K, K)
@@ -456,35 +493,30 @@ def _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod, llv, 
     vstore(X, j, d)
     vstore(X, j + _W, cc)
     vstore(X, j + 2 * _W, e)
-    s, q = vsum2(vmul(a, cc), vmul(a, d))
-    z = s * vsum(e) + q
-    rz = _ONE32 / z
+    ad = vmul(a, d)
+    sv = vsumv(vmul(a, cc))
+    zv = vfma(sv, vsumv(e), vsumv(ad))
+    rzv = vdiv(vsplat(_ONE32), zv)
+    n = vfma(sv, e, ad)
+    a = vmul(n, rzv)
+    rz = vfirst(rzv)
     RZ[t] = rz
-    QS[t] = s * rz
-    prod *= np.float64(z)
-    llv += np.float64(m)
+    QS[t] = vfirst(sv) * rz
+    prod *= np.float64(vfirst(zv))
     if prod < 1e-280:
         llv += math.log(prod)
         prod = 1.0
-    n = vfma(vsplat(s), e, vmul(a, d))
     mn = vmin(mn, vmax(n, pad))
-    a = vmul(n, vsplat(rz))
     vstore(X, j + 7 * _W, a)
     return a, chk, mn, fx, prod, llv
 
 
 @_jit(inline="always")
-def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv, padv, ec):
+def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, SH, chk, mn, fx, prod, llv, padv, ec):
     """Forward step ``t -> t + 1``, any K (``NC`` vectors per step), the message in ``X``."""
     j = t * 4 * KP
     o = t * K
-    mx = vsplat(_NINF32)
-    for c in range(NC):
-        mx = vmax(mx, _ld(lpb, o + c * _W, K - c * _W))
-    m = vhmax(mx)
-    if m == _NINF32:
-        m = _Z32
-    mv = vsplat(m)
+    mv = vsplat(SH[t])  # the step's shift: its largest log pi
     ea = vsplat(_Z32)
     sa = vsplat(_Z32)
     qa = vsplat(_Z32)
@@ -513,7 +545,6 @@ def _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
     RZ[t] = rz
     QS[t] = s * rz
     prod *= np.float64(z)
-    llv += np.float64(m)
     if prod < 1e-280:
         llv += math.log(prod)
         prod = 1.0
@@ -588,8 +619,9 @@ def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, p
         bsv = vadd(bsv, x)
     S = vsum(acc)
     bs = vsum(bsv)
-    # the certificate's backward half: before scaling, each new entry C g + D beta must be at least
-    # tiny * sum(beta) * (C + D) (see fb32_rows), lane-wise minimum over the steps of the difference
+    # the certificate's backward half: each new entry C g + D beta must be at least tiny * sum(beta) * (C + D)
+    # (see fb32_rows), lane-wise minimum over the steps of the difference (for K <= 8 both sides scaled by the
+    # step's 1 / z, which the factors then carry)
     mnb = vsplat(_INF32)
     if NC == 1:  # K <= 8: beta in a register
         x = vload(bv, 0)
@@ -615,11 +647,12 @@ def _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, term, X, RZ, QS, chk, mn, fx, p
                 _st(gcb, o, ww, K)
                 _st(gtb, o + K, vsub(uu, wprev), K)
                 wprev = ww
-            gv = vsplat(vsum(vmul(e, x)))
-            cc = vload(X, j + _W)
-            nb = vfma(cc, gv, vmul(d, x))
-            mnb = vmin(mnb, vsub(nb, vmul(vsplat(tiny * bs), vadd(cc, d))))
-            x = vmul(nb, vsplat(RZ[t]))
+            gv = vsumv(vmul(e, x))
+            rzt = vsplat(RZ[t])
+            ccr = vmul(vload(X, j + _W), rzt)
+            dr = vmul(d, rzt)
+            x = vfma(ccr, gv, vmul(dr, x))
+            mnb = vmin(mnb, vsub(x, vmul(vsplat(tiny * bs), vadd(ccr, dr))))
             S, bs = vsum2(vmul(a0, x), x)
         vstore(bv, 0, x)
         vstore(wn, 0, wprev)
@@ -713,6 +746,7 @@ def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, 
     X = np.zeros((T + 1) * 4 * KP, np.float32)  # per step t: D, C, E (transition t) and the message alpha_t
     RZ = np.empty(T, np.float32)  # 1 / z_t
     QS = np.empty(T, np.float32)  # s_t / z_t
+    SH = np.empty(T, np.float32)  # the steps' shifts (their largest log pi)
     bv = np.zeros(KP, np.float32)
     wn = np.zeros(KP, np.float32)
     padv = np.zeros(KP, np.float32)  # +inf on the lanes beyond K (excluded from the minima), 0 elsewhere
@@ -725,15 +759,16 @@ def fb32_rows(lp, lt, lc, le, T, K, lengths, terminal, ll_out, u, v, w, gp, gt, 
         llv, chk, mn = _start32(leb, K, NC, KP, X, padv, c)
         fx = vsplat(_NINF32)
         prod = 1.0
+        llv += _shifts32(lpb, L - 1, K, NC, SH)
         if NC == 1:
             pad0 = vload(padv, 0)
             a = vload(X, 3 * _W)
             for t in range(L - 1):
-                a, chk, mn, fx, prod, llv = _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, a, chk, mn, fx, prod,
+                a, chk, mn, fx, prod, llv = _step32_one(lpb, ltb, lcb, leb, t, K, X, RZ, QS, SH, a, chk, mn, fx, prod,
                                                         llv, pad0, c)  # fmt: skip
         else:
             for t in range(L - 1):
-                chk, mn, fx, prod, llv = _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, chk, mn, fx, prod, llv,
+                chk, mn, fx, prod, llv = _step32(lpb, ltb, lcb, leb, t, K, NC, KP, X, RZ, QS, SH, chk, mn, fx, prod, llv,
                                                  padv, c)  # fmt: skip
         _finish32(b, L, T, K, NC, KP, lpb, ltb, lcb, terminal[b], X, RZ, QS, chk, mn, fx, prod, llv, tiny, u[b],
                   v[b], w[b], gp[b], gt[b], gc[b], ge[b], grads, bv, wn, padv, ll_out, status, ec)  # fmt: skip

@@ -10,7 +10,8 @@ plain LLVM IR (no target-specific intrinsics, so it compiles wherever Numba does
   :func:`vstore_n` (only the first ``n`` lanes touched: the tail of a row whose K is not a multiple of 8);
 * arithmetic: :func:`vsplat`, :func:`vadd`, :func:`vsub`, :func:`vmul`, :func:`vdiv`, :func:`vfma`,
   :func:`vmax`, :func:`vmin` (IEEE, no fast-math flags: the kernels choose the order of every operation);
-* reductions over the 8 lanes: :func:`vsum`, :func:`vhmax`, :func:`vhmin` (a fixed shuffle tree);
+* reductions over the 8 lanes: :func:`vsum`, :func:`vhmax`, :func:`vhmin` (a fixed shuffle tree), :func:`vsumv`
+  (the sum in every lane), :func:`vhmax8` (the maxima of eight vectors at once), :func:`vfirst` (lane 0);
 * :func:`vexp`: ``exp(x)`` for ``x <= 0`` to about 1 ulp (Cody-Waite reduction, a degree-6 minimax polynomial,
   the power of two from the exponent bits), exactly 0 below -87 and for ``-inf``.
 
@@ -32,8 +33,10 @@ __all__ = [
     "vadd",
     "vdiv",
     "vexp",
+    "vfirst",
     "vfma",
     "vhmax",
+    "vhmax8",
     "vhmin",
     "vload",
     "vload_n",
@@ -46,6 +49,7 @@ __all__ = [
     "vsub",
     "vsum",
     "vsum2",
+    "vsumv",
 ]
 
 LANES = 8
@@ -286,6 +290,71 @@ def vsum2(typingctx, a, b):
     return types.UniTuple(types.float32, 2)(a, b), codegen
 vhmax = _reduce("max", "The largest of the 8 lanes.")
 vhmin = _reduce("min", "The smallest of the 8 lanes.")
+
+
+@intrinsic
+def vsumv(typingctx, v):
+    """The sum of the 8 lanes, in every lane: a butterfly (lane ``j`` adds lane ``j ^ 4``, then ``j ^ 2``, then
+    ``j ^ 1``), the pairwise order of :func:`vsum`, so every lane holds exactly :func:`vsum`'s value, with no
+    extraction and broadcast on the way."""
+    if v != f32x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        x = args[0]
+        undef = ir.Constant(_V, ir.Undefined)
+        for bit in (4, 2, 1):
+            x = builder.fadd(x, builder.shuffle_vector(x, undef, ir.Constant(_VI, [j ^ bit for j in range(LANES)])))
+        return x
+
+    return f32x8(v), codegen
+
+
+@intrinsic
+def vfirst(typingctx, v):
+    """Lane 0 of ``v``, a float32."""
+    if v != f32x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.extract_element(args[0], ir.Constant(_I32, 0))
+
+    return types.float32(v), codegen
+
+
+@intrinsic
+def vhmax8(typingctx, v0, v1, v2, v3, v4, v5, v6, v7):
+    """The vector whose lane ``i`` is ``vhmax(v_i)``, eight lane maxima at once: three levels of two-input shuffles
+    (14 in all) and 7 maxima, against 8 x 3 shuffle-and-max steps one vector at a time. Each comparison is
+    :func:`vhmax`'s, in its order (lane ``j`` against ``j + 4``, then ``+ 2``, then ``+ 1``), so the result is
+    the same, NaN included."""
+    vs = (v0, v1, v2, v3, v4, v5, v6, v7)
+    if not all(v == f32x8 for v in vs):
+        return None
+
+    def codegen(context, builder, sig, args):
+        # (vector, which input each lane's group belongs to); ``width``: lanes per group, each one input's
+        cur = [(x, [i] * LANES) for i, x in enumerate(args)]
+        width = LANES
+        while len(cur) > 1:
+            half = width // 2
+            nxt = []
+            for (a, ta), (b, tb) in zip(cur[0::2], cur[1::2]):
+                lo, hi, tags = [], [], []
+                for tag, off in ((ta, 0), (tb, LANES)):
+                    for g in range(0, LANES, width):
+                        lo += [off + g + j for j in range(half)]  # the low half of each group
+                        hi += [off + g + half + j for j in range(half)]  # and its high half
+                        tags += [tag[g]] * half
+                x = builder.shuffle_vector(a, b, ir.Constant(_VI, lo))
+                y = builder.shuffle_vector(a, b, ir.Constant(_VI, hi))
+                nxt.append((builder.select(builder.fcmp_ordered(">", x, y), x, y), tags))
+            cur, width = nxt, half
+        out, tags = cur[0]
+        order = [tags.index(i) for i in range(LANES)]
+        return builder.shuffle_vector(out, ir.Constant(_V, ir.Undefined), ir.Constant(_VI, order))
+
+    return f32x8(*vs), codegen
 
 # exp on [-ln2/2, ln2/2]: minimax polynomial of degree 6 for the relative error (2e-9 before float32 rounding)
 _EXP_POLY = (1.0, 1.000000032194708, 0.49999994217020166, 0.16666431177443375, 0.04166799994767056,
