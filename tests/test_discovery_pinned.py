@@ -211,52 +211,52 @@ PINNED_FLOAT64_KERNEL = {
 # CPU thread; every other operation is the refactor's (see test_float64_kernel_still_gives_the_old_pins)
 PINNED = {
     "auto-width-corridor-2": {
-        "history": "-0x1.dd5d92f800000p+6",
+        "history": "-0x1.dd5d8d9c00000p+6",
         "iterations": 211,
-        "ll": "-0x1.222c100000000p-1",
-        "params": "18b7ff0d813c75d4",
+        "ll": "-0x1.222bfc0000000p-1",
+        "params": "d1ec411d6f24c48f",
         "restarts": [],
         "width": [
             4,
             {
-                "4": "-0x1.30b8da0000000p-1",
-                "8": "-0x1.318a360000000p-1"
+                "4": "-0x1.30b8e00000000p-1",
+                "8": "-0x1.318a2c0000000p-1"
             }
         ]
     },
     "defaults-corridor-2": {
-        "history": "-0x1.202dc5fe00000p+7",
-        "iterations": 261,
-        "ll": "-0x1.17af260000000p-1",
-        "params": "4446404c66f7608f",
+        "history": "-0x1.4ac65b8800000p+7",
+        "iterations": 300,
+        "ll": "-0x1.179a500000000p-1",
+        "params": "36ffafb5b0803c52",
         "restarts": [
             "-0x1.1e863c0000000p-1",
-            "-0x1.1e5f640000000p-1",
+            "-0x1.1e5f660000000p-1",
             "-0x1.1e861c0000000p-1",
-            "-0x1.1dbc600000000p-1",
-            "-0x1.1e6b360000000p-1",
-            "-0x1.1cabe20000000p-1"
+            "-0x1.1dbc620000000p-1",
+            "-0x1.1e6b380000000p-1",
+            "-0x1.1cabe00000000p-1"
         ]
     },
     "defaults-walls-4": {
-        "history": "-0x1.cb3411d200000p+7",
-        "iterations": 336,
-        "ll": "-0x1.57d2760000000p-1",
-        "params": "4cdc80b744b94bc6",
+        "history": "-0x1.bc6c400200000p+7",
+        "iterations": 325,
+        "ll": "-0x1.57df0c0000000p-1",
+        "params": "8a77b67e62e06d5c",
         "restarts": [
-            "-0x1.9468ea0000000p-1",
+            "-0x1.9468ec0000000p-1",
             "-0x1.84e1ac0000000p-1",
             "-0x1.677e9a0000000p-1",
-            "-0x1.92712e0000000p-1",
+            "-0x1.9271280000000p-1",
             "-0x1.8a03b00000000p-1",
-            "-0x1.67b5980000000p-1"
+            "-0x1.67b59a0000000p-1"
         ]
     },
     "gaussian-3": {
-        "history": "0x1.e78fc29c00000p+8",
+        "history": "0x1.e7d3a46a00000p+8",
         "iterations": 150,
-        "ll": "0x1.a9209c0000000p+1",
-        "params": "75d1c3f0a1c42f17",
+        "ll": "0x1.a91e780000000p+1",
+        "params": "c31fccb3744d2d39",
         "restarts": []
     },
     "hierarchy-defaults": {
@@ -265,53 +265,53 @@ PINNED = {
             100
         ],
         "ll": [
-            "-0x1.e7f1c00000000p-2",
-            "-0x1.42439a0000000p-2"
+            "-0x1.e7f48a0000000p-2",
+            "-0x1.428dbc0000000p-2"
         ],
-        "params": "4960760f5489e5d3",
+        "params": "ed881b6443c56b35",
         "restarts": [
             [
                 "-0x1.0e0dc80000000p-1",
-                "-0x1.1b36b80000000p-1",
-                "-0x1.1c85160000000p-1",
+                "-0x1.1b36940000000p-1",
+                "-0x1.1c85180000000p-1",
                 "-0x1.12b94c0000000p-1"
             ],
             []
         ]
     },
     "kmeans-learned-landmarks-3": {
-        "history": "-0x1.fb51cc1000000p+6",
+        "history": "-0x1.fb51ccd000000p+6",
         "iterations": 120,
         "ll": "-0x1.e35f5a0000000p-1",
-        "params": "9c14ac72a33a0dab",
+        "params": "9781319034a0885f",
         "restarts": []
     },
     "paper-settings-landmarks-3": {
-        "history": "-0x1.76b43a4000000p+7",
+        "history": "-0x1.76b43a4800000p+7",
         "iterations": 150,
         "ll": "-0x1.1e22d20000000p+0",
-        "params": "d18c332637369eb0",
+        "params": "d79c79d194aad853",
         "restarts": []
     },
     "split-merge-corridor-2": {
-        "history": "-0x1.db46940800000p+6",
+        "history": "-0x1.db49682800000p+6",
         "iterations": 200,
-        "ll": "-0x1.2e8d020000000p-1",
+        "ll": "-0x1.2e8cba0000000p-1",
         "moves": [
             [
                 0,
                 1,
-                "-0x1.5b471e0000000p-1",
+                "-0x1.5b48680000000p-1",
                 False
             ],
             [
                 0,
                 1,
-                "-0x1.5bcfa80000000p-1",
+                "-0x1.5bd20a0000000p-1",
                 False
             ]
         ],
-        "params": "e54154e3e848120e",
+        "params": "8fc77cd2c9929c37",
         "restarts": []
     }
 }
@@ -334,8 +334,8 @@ def _close(a, b, tol=1e-3):
 def _assert_near_float64_kernel_pin(got, old):
     """The float32 kernel's discovery against the float64 kernel's pin: the same decisions (width, split-merge
     verdicts, hierarchy iteration counts) and log-likelihoods within 1e-3 relative. The optimisation paths differ
-    by float32 rounding only, so iteration counts under the stopping rule may differ (278 against 261 iterations
-    for defaults-corridor-2, whose final log-likelihoods per step differ by 1.1e-4)."""
+    by float32 rounding only, so iteration counts under the stopping rule may differ (300 against 278 iterations
+    for defaults-corridor-2, whose final log-likelihoods per step differ by 5.2e-5)."""
     lls = (got["ll"], old["ll"]) if isinstance(got["ll"], list) else ([got["ll"]], [old["ll"]])
     assert all(_close(a, b) for a, b in zip(*lls)), (got["ll"], old["ll"])
     for a, b in zip(got["restarts"], old["restarts"]):
