@@ -148,12 +148,17 @@ class _OutputBuffers:
         self._lock = threading.Lock()
 
     def empty(self, shape: tuple[int, ...], dtype) -> Tensor:
+        return torch.from_numpy(self.empty_array(shape, dtype))
+
+    def empty_array(self, shape: tuple[int, ...], dtype) -> np.ndarray:
+        """The array behind :meth:`empty`'s tensor (the caller wraps it with ``torch.from_numpy``; until then it
+        must keep its reference)."""
         key = (shape, np.dtype(dtype))
         with self._lock:
             kept = self._arrays.setdefault(key, [])
             for arr in kept:
                 if sys.getrefcount(arr) <= 3:  # the list, ``arr`` here, getrefcount's argument: nobody else
-                    return torch.from_numpy(arr)
+                    return arr
             arr = np.empty(shape, key[1])
             if self._bytes + arr.nbytes > self.max_bytes:  # make room: drop the free arrays of other shapes
                 for arrays in self._arrays.values():
@@ -162,7 +167,7 @@ class _OutputBuffers:
             if self._bytes + arr.nbytes <= self.max_bytes:
                 kept.append(arr)
                 self._bytes += arr.nbytes
-            return torch.from_numpy(arr)
+            return arr
 
     def clear(self) -> None:
         with self._lock:
@@ -229,6 +234,7 @@ class NumbaEStep(NamedTuple):
     bad: Tensor
     invalid: Tensor
     float32_rows_recomputed: int
+    clean: bool = False  # no row flagged (``bad``) or invalid: the caller has nothing to recompute or name
 
 
 def numba_e_step(
@@ -253,17 +259,22 @@ def numba_e_step(
     """
     k = _kernels()
     B, T, K = log_pi.shape
-    # (NumPy for the small bookkeeping: each PyTorch call costs microseconds, and there are a dozen)
-    lengths_np = mask.numpy().sum(1, dtype=np.int64)
+    # (NumPy for the small bookkeeping: each PyTorch call costs microseconds, tens right after a kernel has streamed
+    # its arrays through the caches, and there are a dozen)
+    mask_np = mask.numpy()
+    lengths_np = np.full(B, T, np.int64) if mask_np.all() else mask_np.sum(1, dtype=np.int64)
     lengths = torch.from_numpy(lengths_np)
     term = terminal.to(torch.bool).contiguous()
     if log_pi.dtype != torch.float32:
         ll, u, v, w, bad = _fb64(k, log_pi, log_term, log_cont, log_eta, lengths, term)
         return NumbaEStep(ll, u, v, w, None, bad, torch.zeros(B, dtype=torch.bool), 0)
-    xs = [x.detach().contiguous().view(B, T * K).numpy() for x in (log_pi, log_term, log_cont, log_eta)]
-    outs = [_BUFFERS.empty((B, T, K), np.float32) for _ in range(7 if grads else 3)]  # all written by the kernel
+    xs = [(x.detach() if x.is_contiguous() else x.detach().contiguous()).numpy().reshape(B, T * K)
+          for x in (log_pi, log_term, log_cont, log_eta)]  # fmt: skip
+    arrays = [_BUFFERS.empty_array((B, T, K), np.float32) for _ in range(7 if grads else 3)]  # all written by the kernel
+    outs = [torch.from_numpy(a) for a in arrays]
     u, v, w = outs[:3]
-    flat = [x.view(B, T * K).numpy() for x in outs]
+    flat = [a.reshape(B, T * K) for a in arrays]
+    del arrays
     if not grads:
         flat += [np.empty((1, 0), np.float32)] * 4
     ll = np.empty(B)
@@ -280,7 +291,7 @@ def numba_e_step(
     # tens of microseconds): the common case, every row certified and valid, takes one status test
     if not status.any():
         return NumbaEStep(torch.from_numpy(ll.astype(np.float32)), u, v, w, tuple(outs[3:]) if grads else None,
-                          _NO_ROWS.expand(B), _NO_ROWS.expand(B), 0)  # fmt: skip
+                          _NO_ROWS.expand(B), _NO_ROWS.expand(B), 0, True)  # fmt: skip
     ll = torch.from_numpy(ll)
     invalid = torch.from_numpy((status & 2) != 0)
     bad = torch.zeros(B, dtype=torch.bool)

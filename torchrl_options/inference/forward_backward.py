@@ -297,6 +297,8 @@ def _numba_backend(log_pi, log_term, log_cont, log_eta, mask, terminal, grads=Fa
     from torchrl_options.inference._numba_fb import numba_e_step
 
     res = numba_e_step(log_pi, log_term, log_cont, log_eta, mask, terminal, grads=grads)
+    if res.clean:  # every row certified and valid (the common case): nothing to name or recompute
+        return (res.log_likelihood, res.u, res.v, res.w), res.grads
     if res.invalid.any():
         # the error names the entry: scan the rows the kernel reported (the error path only)
         check_forward_backward_values(log_pi, log_term, log_cont, log_eta, mask & res.invalid.unsqueeze(1))
@@ -428,7 +430,9 @@ class _ForwardBackward(torch.autograd.Function):
             # g * u, g * (u - w), g * w, g * v: the kernel wrote the values for g = 1 (u itself, u - w in float32,
             # ...), so scaling them gives exactly the expression below; for g = 1 they are returned as they are
             g = grad_ll.detach().to(grads[0].dtype)
-            if not bool((g == 1).all()):
+            # (the test in NumPy where it can be: PyTorch calls are slow right after the kernel, see numba_e_step)
+            unit = bool((g.numpy() == 1).all()) if g.device.type == "cpu" else bool((g == 1).all())
+            if not unit:
                 g = g.view(-1, 1, 1)
                 for x in grads:
                     x.mul_(g)
