@@ -39,6 +39,7 @@ def test_matches_reference_with_padding_and_variable_lengths(K, ninf):
     mask[1, 1:] = False  # a row of one step
     res = _e_step(*xs, mask, terminal)
     assert res.float32_rows_recomputed == 0 and not res.bad.any() and not res.invalid.any()
+    assert res.clean  # the caller's lean path: nothing to name or recompute
     out = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
     ref32 = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
     assert_close_outputs(ref32, out, torch.float32)
@@ -131,7 +132,7 @@ def test_sharp_rows_go_to_the_float64_kernel():
     answer stays at least as close to the float64 one as the float32 reference's."""
     xs, mask, terminal = make_case(8, 200, 4, torch.float32, pad=True, ninf=0.2, sharp=40.0, seed=11)
     res = _e_step(*xs, mask, terminal)
-    assert res.float32_rows_recomputed > 0
+    assert res.float32_rows_recomputed > 0 and not res.clean
     out = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
     truth = _truth(xs, mask, terminal)
     ref32 = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
@@ -146,7 +147,7 @@ def test_certificate_failure_is_recomputed(monkeypatch):
     before = forward_backward(*xs, mask=mask, terminal=terminal, backend="numba")
     monkeypatch.setattr(numba_mod, "_tiny32", lambda K: 10.0)
     res = _e_step(*xs, mask, terminal, grads=True)
-    assert res.float32_rows_recomputed == 5
+    assert res.float32_rows_recomputed == 5 and not res.clean
     assert_close_outputs(before, res, torch.float32)
     # the gradients of the recomputed rows are still the Expectation-Gradient of their marginals
     gp, gt, gc, ge = res.grads
@@ -353,6 +354,23 @@ def test_without_the_float32_kernel_float32_takes_the_float64_kernel(monkeypatch
     assert_close_outputs(fast, out, torch.float32)
     torch.testing.assert_close(grads[0], out.u, rtol=0, atol=0)
     torch.testing.assert_close(grads[3], out.v, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("valid", ["all", "padded"])
+def test_lengths_from_an_all_valid_mask_and_a_padded_one(valid):
+    """The lengths come without a sum when every step is valid and from the mask's rows otherwise: the same answers
+    as the float32 reference either way, and the all-valid mask equal to passing none."""
+    xs, mask, terminal = make_case(6, 37, 5, torch.float32, pad=valid == "padded", seed=21)
+    if mask is None:
+        mask = torch.ones(6, 37, dtype=torch.bool)
+    terminal = torch.as_tensor(terminal).expand(6)
+    res = _e_step(*xs, mask, terminal)
+    assert res.clean and bool(mask.all()) == (valid == "all")
+    ref = forward_backward(*xs, mask=mask, terminal=terminal, backend="reference")
+    assert_close_outputs(ref, res, torch.float32)
+    if valid == "all":
+        none = forward_backward(*xs, terminal=terminal, backend="numba")
+        assert torch.equal(none.u, res.u) and torch.equal(none.log_likelihood, res.log_likelihood)
 
 
 def test_output_buffers_stay_bounded():
