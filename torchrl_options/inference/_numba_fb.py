@@ -274,7 +274,6 @@ def numba_e_step(
     outs = [torch.from_numpy(a) for a in arrays]
     u, v, w = outs[:3]
     flat = [a.reshape(B, T * K) for a in arrays]
-    del arrays
     if not grads:
         flat += [np.empty((1, 0), np.float32)] * 4
     ll = np.empty(B)

@@ -389,6 +389,7 @@ _Z32 = np.float32(0.0)
 _ONE32 = np.float32(1.0)
 _NINF32 = np.float32(-np.inf)
 _INF32 = np.float32(np.inf)
+_NO_SHIFT32 = np.float32(-3.4e38)  # the shift of a step whose every log pi is -inf
 
 
 @_jit(inline="always")
@@ -451,26 +452,22 @@ def _shifts32(lpb, n, K, NC, SH):
     """``SH[t]``: the shift of step ``t < n``, its largest ``log pi``, eight steps at a time (:func:`vhmax8`), in
     a pass before the forward one (there the shift's horizontal maximum sat on every step's path to its
     exponentials: 9% of the kernel's time at K = 8). Returns their sum (float64). A step whose every ``log pi`` is
-    ``-inf`` gets -3.4e38 (its factors stay exact zeros, and the row, of zero likelihood, fails the certificate)."""
+    ``-inf`` gets ``_NO_SHIFT32`` (its factors stay exact zeros, and the row, of zero likelihood, fails the
+    certificate)."""
+    lo = vsplat(_NO_SHIFT32)
     t = 0
-    tot = 0.0
-    lo = vsplat(np.float32(-3.4e38))
     while t + _W <= n:
         o = t * K
         m = vhmax8(_stepmax(lpb, o, K, NC), _stepmax(lpb, o + K, K, NC), _stepmax(lpb, o + 2 * K, K, NC),
                    _stepmax(lpb, o + 3 * K, K, NC), _stepmax(lpb, o + 4 * K, K, NC), _stepmax(lpb, o + 5 * K, K, NC),
                    _stepmax(lpb, o + 6 * K, K, NC), _stepmax(lpb, o + 7 * K, K, NC))  # fmt: skip
         vstore(SH, t, vmax(m, lo))
-        for j in range(_W):
-            tot += np.float64(SH[t + j])
         t += _W
-    while t < n:
-        m = vhmax(_stepmax(lpb, t * K, K, NC))
-        if m == _NINF32:
-            m = np.float32(-3.4e38)
-        SH[t] = m
-        tot += np.float64(m)
-        t += 1
+    for t in range(t, n):
+        SH[t] = max(vhmax(_stepmax(lpb, t * K, K, NC)), _NO_SHIFT32)
+    tot = 0.0
+    for t in range(n):
+        tot += np.float64(SH[t])
     return tot
 
 
